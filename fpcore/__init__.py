@@ -1,0 +1,64 @@
+"""fpcore — the fingerprint method, exact and fast (numerics only: no network, no services).
+
+Find, localise and characterise targets in strongly scattering media from plane-wave reflection
+matrices with the fingerprint likelihood index γ (Le Ber et al.; see DESIGN.md §4 for conventions).
+
+    >>> import fpcore
+    >>> imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=(1.8e6, 2.6e6), n_freq=40))
+    >>> pw = imager.plane_waves(acquisition)
+    >>> fp = fpcore.from_calibration(calibration, r0, pw.out_sines, (1.8e6, 2.6e6), 40, diameter=10e-3)
+    >>> gamma = imager.gamma(pw, fp)
+"""
+
+from .acquisition import (
+    Acquisition,
+    PlaneWaveData,
+    PlaneWaveSequence,
+    Probe,
+    Spectrum,
+    output_sines,
+    to_plane_waves,
+)
+from .fingerprint import (
+    Fingerprint,
+    angular_mask,
+    from_calibration,
+    mirror_fingerprint,
+    point_fingerprint,
+    time_gate,
+    whiten,
+)
+from .grid import Grid
+from .kernel import GridTransform, direct_sum, wavevectors
+from .likelihood import Imager, ImagingConfig
+from .metrics import Detection, contrasts, cramer_rao_precision, detect, pfa
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Acquisition",
+    "Detection",
+    "Fingerprint",
+    "Grid",
+    "GridTransform",
+    "Imager",
+    "ImagingConfig",
+    "PlaneWaveData",
+    "PlaneWaveSequence",
+    "Probe",
+    "Spectrum",
+    "angular_mask",
+    "contrasts",
+    "cramer_rao_precision",
+    "detect",
+    "direct_sum",
+    "from_calibration",
+    "mirror_fingerprint",
+    "output_sines",
+    "pfa",
+    "point_fingerprint",
+    "time_gate",
+    "to_plane_waves",
+    "wavevectors",
+    "whiten",
+]

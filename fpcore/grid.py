@@ -1,0 +1,101 @@
+"""Regular imaging grids, 2D (x–z) and 3D (x–y–z) (DESIGN.md §3)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["Grid"]
+
+
+def _axis(start: float, step: float, n: int) -> np.ndarray:
+    return start + step * np.arange(n)
+
+
+@dataclass(frozen=True)
+class Grid:
+    """Regular grid. Axes are uniform; y is None for a 2D (x–z) grid.
+
+    Arrays defined on the grid have shape (N_x, N_z) in 2D and (N_x, N_y, N_z) in 3D.
+    """
+
+    x: np.ndarray
+    z: np.ndarray
+    y: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("x", "y", "z"):
+            a = getattr(self, name)
+            if a is None:
+                continue
+            a = np.asarray(a, dtype=np.float64)
+            if a.ndim != 1 or a.size < 1:
+                raise ValueError(f"grid.{name}: expected a non-empty 1D axis")
+            if a.size > 1 and not np.allclose(np.diff(a), a[1] - a[0], rtol=1e-6, atol=0):
+                raise ValueError(f"grid.{name}: expected a uniform axis")
+            object.__setattr__(self, name, a)
+
+    @classmethod
+    def regular(cls, x_range: tuple[float, float], z_range: tuple[float, float], spacing: float,
+                y_range: tuple[float, float] | None = None) -> Grid:
+        """Grid covering the ranges (metres) with the given spacing."""
+        def ax(r: tuple[float, float]) -> np.ndarray:
+            n = int(np.floor((r[1] - r[0]) / spacing + 1e-9)) + 1
+            return _axis(r[0], spacing, n)
+        return cls(ax(x_range), ax(z_range), None if y_range is None else ax(y_range))
+
+    @classmethod
+    def centred(cls, centre: tuple[float, ...], shape: tuple[int, ...], spacing: float | tuple[float, ...]) -> Grid:
+        """Grid of the given shape ((N_x, N_z) or (N_x, N_y, N_z)) whose index N//2 sits on centre."""
+        sp = np.broadcast_to(np.asarray(spacing, dtype=float), (len(shape),))
+        axes = [_axis(c - (n // 2) * d, d, n) for c, n, d in zip(centre, shape, sp, strict=True)]
+        if len(shape) == 2:
+            return cls(axes[0], axes[1])
+        if len(shape) == 3:
+            return cls(axes[0], axes[2], axes[1])
+        raise ValueError(f"shape: expected 2 or 3 dimensions, got {shape}")
+
+    @property
+    def ndim(self) -> int:
+        return 2 if self.y is None else 3
+
+    @property
+    def axes(self) -> tuple[np.ndarray, ...]:
+        return (self.x, self.z) if self.y is None else (self.x, self.y, self.z)
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return tuple(a.size for a in self.axes)
+
+    @property
+    def spacing(self) -> tuple[float, ...]:
+        return tuple(float(a[1] - a[0]) if a.size > 1 else 1.0 for a in self.axes)
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape))
+
+    def centre_index_point(self) -> np.ndarray:
+        """Position (x, y, z) of the node with index N//2 along each axis (y = 0 in 2D)."""
+        c = [a[a.size // 2] for a in self.axes]
+        return np.array([c[0], 0.0, c[1]]) if self.ndim == 2 else np.array(c)
+
+    def points(self) -> np.ndarray:
+        """All nodes as (size, 3) positions (x, y, z), in C order of the grid's shape."""
+        mesh = np.meshgrid(*self.axes, indexing="ij")
+        if self.ndim == 2:
+            return np.stack([mesh[0].ravel(), np.zeros(self.size), mesh[1].ravel()], axis=1)
+        return np.stack([m.ravel() for m in mesh], axis=1)
+
+    def position(self, index: tuple[int, ...]) -> np.ndarray:
+        """(x, y, z) of a node given its index tuple."""
+        vals = [a[i] for a, i in zip(self.axes, index, strict=True)]
+        return np.array([vals[0], 0.0, vals[1]]) if self.ndim == 2 else np.array(vals)
+
+    def nearest_index(self, r: np.ndarray) -> tuple[int, ...]:
+        """Index of the node nearest to position r = (x, y, z)."""
+        r = np.asarray(r, dtype=float)
+        coords = (r[0], r[2]) if self.ndim == 2 else (r[0], r[1], r[2])
+        return tuple(int(np.clip(np.rint((c - a[0]) / (a[1] - a[0] if a.size > 1 else 1.0)), 0, a.size - 1))
+                     for c, a in zip(coords, self.axes, strict=True))

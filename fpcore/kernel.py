@@ -1,0 +1,115 @@
+"""The beamforming kernel behind every map (DESIGN.md §5, paper Supplementary S7).
+
+Every map the project computes is the same sum over the plane-wave samples j = (f, θ_out, θ_in):
+
+    B(r) = Σ_j w_j exp(+i K_j · r),   K_j = k_f (s_o + s_i, c_o + c_i)            (DESIGN §5)
+
+* confocal image: w = R_θθ, I = |B|² (DESIGN §4.3; paper eq. "confocal" and S7 eq. I_BF);
+* γ-map numerator: w = R_θθ ∘ F*_θθ(r0) e^{-iK·r0}, γ ∝ |B| (paper S7 eq. gamma_BF).
+
+On a regular grid r = r_c + n·Δ (n integer) this is a type-1 non-uniform FFT with points K_j Δ
+(taken modulo 2π, which is exact at integer n) and strengths w_j e^{iK_j·r_c}. `GridTransform`
+holds a finufft plan whose points are set once per acquisition geometry and grid, and reused for
+every frame. `direct_sum` is the obviously-correct O(N_samples × N_points) reference.
+
+Sign: with numpy's forward FFT (e^{-i2πft}) a point scatterer at r gives R_θθ ∝ e^{-iK·r}
+(DESIGN §7 stack note); the focusing phase is therefore e^{+iK·r}. tests/test_kernel.py checks
+that a point's map peaks at its position.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from .grid import Grid
+
+__all__ = ["wavevectors", "direct_sum", "GridTransform", "default_threads"]
+
+
+def default_threads() -> int:
+    """Threads for the kernel: FP_THREADS if set, else the machine's CPU count."""
+    env = os.environ.get("FP_THREADS")
+    return int(env) if env else (os.cpu_count() or 1)
+
+
+def wavevectors(freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, c0: float,
+                ndim: int) -> np.ndarray:
+    """K_j = k_f (s_o + s_i, c_o + c_i) for all samples, shape (N_f·N_o·N_i, ndim), order (f, o, i).
+
+    ndim = 2 gives (K_x, K_z); ndim = 3 gives (K_x, K_y, K_z). c = √(1 − s_x² − s_y²) (DESIGN §4).
+    """
+    k = 2 * np.pi * np.asarray(freqs, dtype=np.float64) / c0
+    so = np.asarray(out_sines, dtype=np.float64)
+    si = np.asarray(in_sines, dtype=np.float64)
+    co = np.sqrt(1 - so[:, 0] ** 2 - so[:, 1] ** 2)
+    ci = np.sqrt(1 - si[:, 0] ** 2 - si[:, 1] ** 2)
+    kx = k[:, None, None] * (so[None, :, None, 0] + si[None, None, :, 0])
+    kz = k[:, None, None] * (co[None, :, None] + ci[None, None, :])
+    if ndim == 2:
+        return np.stack([kx.ravel(), kz.ravel()], axis=1)
+    if ndim == 3:
+        ky = k[:, None, None] * (so[None, :, None, 1] + si[None, None, :, 1])
+        return np.stack([kx.ravel(), ky.ravel(), kz.ravel()], axis=1)
+    raise ValueError(f"ndim: expected 2 or 3, got {ndim}")
+
+
+def _grid_coords(points: np.ndarray, ndim: int) -> np.ndarray:
+    """(x, y, z) positions → the coordinates matching K's layout ((x, z) in 2D)."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    return p[:, [0, 2]] if ndim == 2 else p
+
+
+def direct_sum(weights: np.ndarray, K: np.ndarray, points: np.ndarray, chunk: int = 2048) -> np.ndarray:
+    """Reference: B(r_p) = Σ_j w_j exp(i K_j·r_p) for positions points (P, 3), in complex128."""
+    w = np.asarray(weights, dtype=np.complex128).ravel()
+    coords = _grid_coords(points, K.shape[1])
+    out = np.empty(coords.shape[0], dtype=np.complex128)
+    for a in range(0, coords.shape[0], chunk):
+        phase = coords[a:a + chunk] @ K.T
+        out[a:a + chunk] = np.exp(1j * phase) @ w
+    return out
+
+
+class GridTransform:
+    """B(r) = Σ_j w_j e^{iK_j·r} on a regular grid by a type-1 NUFFT (finufft), plan reused.
+
+    K: (N_s, ndim) wavevectors (see `wavevectors`). eps: requested relative accuracy of finufft
+    (errors scale with Σ|w|, not with the peak: speckle-like maps need eps ≈ 1e-4; DESIGN §7).
+    n_trans: number of weight vectors transformed per call (a dictionary batch).
+    """
+
+    def __init__(self, K: np.ndarray, grid: Grid, eps: float = 1e-4, n_trans: int = 1,
+                 nthreads: int | None = None, precision: str = "single") -> None:
+        import finufft
+
+        if K.shape[1] != grid.ndim:
+            raise ValueError(f"K: expected {grid.ndim} components for a {grid.ndim}D grid, got {K.shape[1]}")
+        self.grid = grid
+        self.n_samples = K.shape[0]
+        self.n_trans = n_trans
+        self.complex_dtype = np.complex64 if precision == "single" else np.complex128
+        real_dtype = np.float32 if precision == "single" else np.float64
+        spacing = np.asarray(grid.spacing)
+        centre = _grid_coords(grid.centre_index_point(), grid.ndim)[0]
+        # Strength ramp e^{iK·r_c}: the grid's index-0 mode sits on the node N//2 (finufft modeord 0).
+        self.ramp = np.exp(1j * (K @ centre)).astype(self.complex_dtype)
+        pts = [np.mod(K[:, d] * spacing[d] + np.pi, 2 * np.pi) - np.pi for d in range(grid.ndim)]
+        self._plan = finufft.Plan(1, grid.shape, n_trans=n_trans, eps=eps, isign=1,
+                                  dtype="complex64" if precision == "single" else "complex128",
+                                  nthreads=nthreads or default_threads(), fftw=0,
+                                  upsampfac=1.25 if eps >= 1e-4 else 2.0)
+        self._plan.setpts(*[p.astype(real_dtype) for p in pts])
+
+    def __call__(self, weights: np.ndarray) -> np.ndarray:
+        """Map of Σ_j w_j e^{iK_j·r} on the grid; weights (N_s,) or (n_trans, N_s)."""
+        w = np.asarray(weights)
+        if w.shape[-1] != self.n_samples:
+            raise ValueError(f"weights: expected last axis {self.n_samples}, got {w.shape}")
+        c = (w * self.ramp).astype(self.complex_dtype, copy=False)
+        if self.n_trans == 1:
+            c = c.reshape(self.n_samples)
+        else:
+            c = c.reshape(self.n_trans, self.n_samples)
+        return self._plan.execute(np.ascontiguousarray(c))
