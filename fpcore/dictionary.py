@@ -23,7 +23,7 @@ import numpy as np
 import scipy.fft as sfft
 
 from .acquisition import PlaneWaveData
-from .fingerprint import Fingerprint, mirror_response
+from .fingerprint import Fingerprint, mirror_direction, mirror_response, sinc_segment
 from .grid import Grid
 from .kernel import GridTransform, default_threads, wavevectors
 from .likelihood import Imager
@@ -38,6 +38,24 @@ class ModelFamily:
     kind: str
     states: list[dict]
     response: Callable[[np.ndarray, dict], np.ndarray]  # (K3 (N_s, 3), state) -> F_q(K) (N_s,)
+    # Optional split F_q(K) = profile(project(K, q), q) where project depends on few state keys
+    # (a mirror's K·t̂ depends on α only): projections are then shared by the states of a group.
+    group: Callable[[dict], object] | None = None
+    project: Callable[[np.ndarray, dict], np.ndarray] | None = None
+    profile: Callable[[np.ndarray, dict], np.ndarray] | None = None
+
+    def responses(self, K3: np.ndarray, indices: list[int], cache: dict) -> Iterator[np.ndarray]:
+        """F_q(K) for the given states, reusing projections of a group through `cache`."""
+        for q in indices:
+            state = self.states[q]
+            if self.project is None or self.profile is None or self.group is None:
+                yield self.response(K3, state)
+                continue
+            key = self.group(state)
+            if key not in cache:
+                cache.clear()
+                cache[key] = self.project(K3, state)
+            yield self.profile(cache[key], state)
 
 
 def mirror_family(lengths: np.ndarray, alphas: np.ndarray, azimuth: float = 0.0) -> ModelFamily:
@@ -45,7 +63,14 @@ def mirror_family(lengths: np.ndarray, alphas: np.ndarray, azimuth: float = 0.0)
     states = [{"alpha_rad": float(a), "length_m": float(L)} for a in alphas for L in lengths]
     def resp(K3: np.ndarray, q: dict) -> np.ndarray:
         return mirror_response(K3, q["length_m"], q["alpha_rad"], azimuth)
-    return ModelFamily("mirror", states, resp)
+
+    def project(K3: np.ndarray, q: dict) -> np.ndarray:
+        return K3 @ mirror_direction(q["alpha_rad"], azimuth).astype(K3.dtype)
+
+    def profile(kt: np.ndarray, q: dict) -> np.ndarray:
+        return sinc_segment(kt, q["length_m"])
+
+    return ModelFamily("mirror", states, resp, group=lambda q: q["alpha_rad"], project=project, profile=profile)
 
 
 @dataclass
@@ -94,6 +119,7 @@ class Dictionary:
             raise ValueError("dictionary: give either explicit fingerprints or a model family")
         self.fingerprints = fingerprints
         self.family = family
+        self._correlators: dict[tuple, _FFTCorrelator | None] = {}  # per geometry: plans reused across frames
 
     @property
     def states(self) -> list[dict]:
@@ -118,7 +144,10 @@ class Dictionary:
         use_fft = self.family is not None and method in ("auto", "fft")
         maps: Iterator[tuple[int, np.ndarray]]
         if use_fft:
-            corr = _FFTCorrelator.build(pw, grid, imager.config.eps, self.family)
+            key = (id(imager), Imager._key(pw))
+            if key not in self._correlators:
+                self._correlators = {key: _FFTCorrelator.build(pw, grid, imager.config.eps, self.family)}
+            corr = self._correlators[key]
             if corr is None and method == "fft":
                 raise ValueError("grid: too coarse for the FFT correlation (spectrum fills the grid's band)")
             maps = corr.maps(r, r_norm, batch) if corr is not None else self._exact(imager, pw, r, r_norm, batch)
@@ -186,7 +215,7 @@ class _FFTCorrelator:
             return None
         # Padding: the largest model extent (from the states) plus taper tails.
         extent = max((q.get("length_m", 0.0) for q in family.states), default=0.0)
-        pad = [int(np.ceil(extent / 2 / d)) + 12 for d in spacing]
+        pad = [int(np.ceil(extent / 2 / d)) + 24 for d in spacing]
         shape_ext = tuple(sfft.next_fast_len(n + 2 * p) for n, p in zip(grid.shape, pad, strict=True))
         offs = [(ne - n) // 2 for ne, n in zip(shape_ext, grid.shape, strict=True)]
         axes_ext = [a[0] + (np.arange(ne) - o) * d
@@ -213,7 +242,8 @@ class _FFTCorrelator:
             K3k = np.stack([k.ravel() for k in k_true], axis=1)
             Ks3 = K
         crop = tuple(slice(o, o + n) for o, n in zip(offs, grid.shape, strict=True))
-        obj = cls(np.empty(0), kappa, taper.astype(np.float32), crop, K3k, family, shape_ext, Ks3)
+        obj = cls(np.empty(0), kappa, taper.astype(np.float32), crop, K3k.astype(np.float32), family, shape_ext,
+                  Ks3.astype(np.float32))
         obj._kern = kern  # type: ignore[attr-defined]
         return obj
 
@@ -222,16 +252,17 @@ class _FFTCorrelator:
         axes = tuple(range(len(self.shape_ext)))
         spec = sfft.fftn(field_ext, axes=axes, workers=default_threads()).astype(np.complex64)
         spec *= self.taper
-        states = self.family.states
-        n = len(states)
+        n = len(self.family.states)
+        cache_grid: dict = {}
+        cache_samples: dict = {}
         for a in range(0, n, batch):
             idx = list(range(a, min(a + batch, n)))
             stack = np.empty((len(idx),) + self.shape_ext, np.complex64)
             norms = []
-            for j, q in enumerate(idx):
-                resp = self.family.response(self.K3_of_kappa, states[q]).reshape(self.shape_ext)
-                np.multiply(spec, np.conj(resp).astype(np.complex64), out=stack[j])
-                f = self.family.response(self.k_samples3, states[q])
+            on_grid = self.family.responses(self.K3_of_kappa, idx, cache_grid)
+            on_samples = self.family.responses(self.k_samples3, idx, cache_samples)
+            for j, (resp, f) in enumerate(zip(on_grid, on_samples, strict=True)):
+                np.multiply(spec, np.conj(resp).reshape(self.shape_ext), out=stack[j])
                 norms.append(float(np.sqrt(np.vdot(f, f).real)))
             out = sfft.ifftn(stack, axes=tuple(range(1, stack.ndim)), workers=default_threads(),
                              overwrite_x=True)

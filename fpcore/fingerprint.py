@@ -240,8 +240,18 @@ def mirror_direction(alpha: float, azimuth: float = 0.0) -> np.ndarray:
 
 def mirror_response(K3: np.ndarray, length: float, alpha: float, azimuth: float = 0.0) -> np.ndarray:
     """∫_{-L/2}^{L/2} e^{-iK·l t̂} dl = L sinc(K·t̂ L / 2π) for a segment centred at the origin."""
-    kt = K3 @ mirror_direction(alpha, azimuth)
-    return length * np.sinc(kt * length / (2 * np.pi))
+    return sinc_segment(K3 @ mirror_direction(alpha, azimuth).astype(K3.dtype), length)
+
+
+def sinc_segment(kt: np.ndarray, length: float) -> np.ndarray:
+    """L sin(K_t L/2)/(K_t L/2): the segment integral as a function of the projection K_t = K·t̂."""
+    x = kt * kt.dtype.type(length / 2)
+    out = np.sin(x)
+    zero = x == 0
+    np.divide(out, x, out=out, where=~zero)
+    out[zero] = 1.0
+    out *= kt.dtype.type(length)
+    return out
 
 
 def mirror_fingerprint(freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, c0: float,

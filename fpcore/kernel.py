@@ -107,7 +107,10 @@ class GridTransform:
         w = np.asarray(weights)
         if w.shape[-1] != self.n_samples:
             raise ValueError(f"weights: expected last axis {self.n_samples}, got {w.shape}")
-        c = (w * self.ramp).astype(self.complex_dtype, copy=False)
+        return self.execute_ramped((w * self.ramp).astype(self.complex_dtype, copy=False))
+
+    def execute_ramped(self, c: np.ndarray) -> np.ndarray:
+        """Same map for strengths already multiplied by `ramp` (callers that cache w·ramp)."""
         if self.n_trans == 1:
             c = c.reshape(self.n_samples)
         else:

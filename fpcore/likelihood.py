@@ -78,7 +78,7 @@ class Imager:
         return kern
 
     def template(self, pw: PlaneWaveData, fp: Fingerprint) -> np.ndarray:
-        """conj(F(r0)) e^{-iK·r0} / ‖F‖ for this geometry, cached per fingerprint object."""
+        """conj(F(r0)) e^{-iK·r0} / ‖F‖ times the kernel's grid ramp, cached per fingerprint object."""
         key = (id(fp), self._key(pw))
         t = self._templates.get(key)
         if t is None:
@@ -86,7 +86,7 @@ class Imager:
             norm = np.sqrt(fp.norm2)
             if norm == 0:
                 raise ValueError(f"fingerprint '{fp.name}': is identically zero (gate or filter removed all)")
-            t = fp.centred_conj(self.grid.ndim) / np.float32(norm)
+            t = fp.centred_conj(self.grid.ndim) * (self.kernel(pw).ramp / np.float32(norm))
             self._templates[key] = t
         return t
 
@@ -109,5 +109,5 @@ class Imager:
         r_norm = np.sqrt(float(np.vdot(r, r).real))
         if r_norm == 0:
             return np.zeros(self.grid.shape, dtype=np.float32)
-        num = self.kernel(pw)(r * self.template(pw, fp))
+        num = self.kernel(pw).execute_ramped(r * self.template(pw, fp))
         return (np.abs(num) / r_norm).astype(np.float32)
