@@ -1,0 +1,531 @@
+"""Message models of the streaming service (DESIGN.md §7).
+
+Every message is a pydantic v2 model with ``schema_name`` and ``schema_version``. Array fields hold
+numpy arrays in Python; on the wire (``services.wire``) each array travels as a raw little-endian
+buffer and the JSON header holds, in the array field's place, the *name* of its buffer: the dotted
+field path (``"rf"``, ``"probe.positions"``, ``"grid.x"``), described in the header's ``arrays`` list
+by an :class:`ArrayDescriptor` (name, dtype, shape, offset, nbytes).
+
+Array fields are declared as ``Annotated[np.ndarray, ArraySpec(...)]``. Built in Python, an array of
+another dtype is cast only when the cast is safe (float32 → float64 positions); otherwise, and always
+when decoding, the dtype must be one the field allows. Big-endian inputs are converted to
+little-endian at construction.
+
+Versioning: ``schema_version`` is ``"MAJOR.MINOR"``. A reader accepts any minor version of its major
+(minor versions only add optional fields; unknown header fields are ignored) and refuses another
+major.
+
+Units are SI throughout: metres, seconds, hertz, m/s.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Annotated, Any, Literal
+
+import numpy as np
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    GetCoreSchemaHandler,
+    GetJsonSchemaHandler,
+    JsonValue,
+    ValidationInfo,
+    model_validator,
+)
+from pydantic.json_schema import JsonSchemaValue
+from pydantic_core import core_schema
+
+if TYPE_CHECKING:  # pragma: no cover
+    from fpcore.acquisition import Acquisition
+    from fpcore.grid import Grid as CoreGrid
+
+__all__ = [
+    "ALLOWED_DTYPES",
+    "ArrayDescriptor",
+    "ArrayFieldError",
+    "ArraySpec",
+    "ConfocalImage",
+    "Detection",
+    "Detections",
+    "ErrorReport",
+    "GammaMap",
+    "Grid",
+    "Latency",
+    "MESSAGE_TYPES",
+    "Message",
+    "Normalisation",
+    "Probe",
+    "RFFrame",
+    "Status",
+    "Track",
+    "Tracks",
+    "VERSION_PATTERN",
+    "examples",
+]
+
+VERSION_PATTERN = r"^[0-9]+\.[0-9]+$"
+ARRAY_NAME_PATTERN = r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z0-9_]+)*$"
+
+#: dtypes a buffer may have on the wire (numpy ``dtype.str``, little-endian or single byte).
+ALLOWED_DTYPES: tuple[str, ...] = (
+    "|b1", "|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<u8", "<i8", "<f2", "<f4", "<f8", "<c8", "<c16",
+)
+
+Vec3 = tuple[float, float, float]
+
+
+class ArrayFieldError(ValueError):
+    """A model-level check failed on a named field (the wire layer reports ``field``)."""
+
+    def __init__(self, field: str, problem: str) -> None:
+        self.field = field
+        self.problem = problem
+        super().__init__(f"{field}: {problem}")
+
+
+def _dtype_names(dtypes: tuple[np.dtype, ...]) -> str:
+    return " or ".join(d.name for d in dtypes)
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """Constraints of an array field: allowed dtypes (first one is the default), ndim, fixed
+    trailing dimensions and whether every value must be finite."""
+
+    dtypes: tuple[str, ...]
+    ndim: int | None = None
+    trailing: tuple[int, ...] = ()
+    finite: bool = False
+    min_size: int = 0
+
+    def __post_init__(self) -> None:
+        for d in self.dtypes:
+            if np.dtype(d).str not in ALLOWED_DTYPES:
+                raise ValueError(f"ArraySpec: dtype {d!r} cannot travel on the wire")
+
+    @property
+    def np_dtypes(self) -> tuple[np.dtype, ...]:
+        return tuple(np.dtype(d).newbyteorder("<") for d in self.dtypes)
+
+    def __get_pydantic_core_schema__(self, source: Any, handler: GetCoreSchemaHandler) -> core_schema.CoreSchema:
+        return core_schema.with_info_plain_validator_function(
+            self.validate,
+            serialization=core_schema.plain_serializer_function_ser_schema(
+                _serialize_array, info_arg=True, when_used="json"
+            ),
+        )
+
+    def __get_pydantic_json_schema__(
+        self, cs: core_schema.CoreSchema, handler: GetJsonSchemaHandler
+    ) -> JsonSchemaValue:
+        spec: dict[str, Any] = {"dtype": [d.str for d in self.np_dtypes]}
+        if self.ndim is not None:
+            spec["ndim"] = self.ndim
+        if self.trailing:
+            spec["trailing_shape"] = list(self.trailing)
+        if self.finite:
+            spec["finite"] = True
+        return {
+            "type": "string",
+            "pattern": ARRAY_NAME_PATTERN,
+            "description": "Name of the buffer (an entry of `arrays`) that holds this array.",
+            "x-array": spec,
+        }
+
+    def validate(self, value: Any, info: ValidationInfo) -> np.ndarray:
+        """Resolve a buffer reference (decoding) or accept an array-like (Python), then check it."""
+        ctx = info.context if isinstance(info.context, dict) else None
+        buffers = ctx.get("arrays") if ctx is not None else None
+        allowed = self.np_dtypes
+        if buffers is not None:
+            if not isinstance(value, str):
+                raise ValueError("expected the name of a buffer listed in 'arrays'")
+            if value not in buffers:
+                raise ValueError(f"buffer {value!r} is not described in 'arrays'")
+            ctx["used"].add(value)  # type: ignore[index]
+            arr = buffers[value]
+            if arr.dtype not in allowed:
+                raise ValueError(f"expected dtype {_dtype_names(allowed)}, got {arr.dtype.str}")
+        else:
+            if isinstance(value, str):
+                raise ValueError("expected an array, got a buffer name outside wire decoding")
+            arr = value if isinstance(value, np.ndarray) else np.asarray(value)
+            if arr.dtype.byteorder == ">":
+                arr = arr.astype(arr.dtype.newbyteorder("<"))
+            if arr.dtype not in allowed:
+                if arr.dtype.kind in "biufc" and np.can_cast(arr.dtype, allowed[0], "safe"):
+                    arr = arr.astype(allowed[0])
+                else:
+                    raise ValueError(
+                        f"expected dtype {_dtype_names(allowed)}, got {arr.dtype} (cast it explicitly)"
+                    )
+        if self.ndim is not None and arr.ndim != self.ndim:
+            raise ValueError(f"expected {self.ndim} dimensions, got shape {arr.shape}")
+        if self.trailing and tuple(arr.shape[arr.ndim - len(self.trailing):]) != self.trailing:
+            want = ", ".join(["N"] * (arr.ndim - len(self.trailing)) + [str(t) for t in self.trailing])
+            raise ValueError(f"expected shape ({want}), got {arr.shape}")
+        if arr.size < self.min_size:
+            raise ValueError(f"expected at least {self.min_size} element(s), got shape {arr.shape}")
+        if self.finite and arr.dtype.kind in "fc" and arr.size and not _all_finite(arr):
+            raise ValueError("contains NaN or inf; expected finite values")
+        return arr
+
+
+def _all_finite(arr: np.ndarray) -> bool:
+    """True if no NaN/inf, without allocating an array-sized temporary (min/max propagate NaN)."""
+    if arr.dtype.kind == "c":
+        return _all_finite(arr.real) and _all_finite(arr.imag)
+    return bool(np.isfinite(np.min(arr)) and np.isfinite(np.max(arr)))
+
+
+def _serialize_array(arr: np.ndarray, info: Any) -> str:
+    names = info.context.get("array_names") if isinstance(info.context, dict) else None
+    if names is not None and id(arr) in names:
+        return names[id(arr)]
+    return f"<ndarray {arr.dtype} {tuple(arr.shape)}>"
+
+
+def _array(*dtypes: str, ndim: int | None = None, trailing: tuple[int, ...] = (), finite: bool = False,
+           min_size: int = 0) -> ArraySpec:
+    return ArraySpec(tuple(dtypes), ndim, trailing, finite, min_size)
+
+
+_AXIS = _array("<f8", ndim=1, finite=True, min_size=1)
+
+
+class ArrayDescriptor(BaseModel):
+    """Where one array buffer lies in the payload. ``offset`` counts from the start of the data
+    section (a multiple of 64); ``nbytes`` = prod(shape) × itemsize."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str = Field(pattern=ARRAY_NAME_PATTERN, max_length=256, description="Dotted field path.")
+    dtype: str = Field(
+        description="numpy dtype string, little-endian or single-byte.",
+        json_schema_extra={"enum": list(ALLOWED_DTYPES)},
+    )
+    shape: list[Annotated[int, Field(ge=0)]] = Field(max_length=32)
+    offset: int = Field(ge=0, multiple_of=64, description="Bytes from the start of the data section.")
+    nbytes: int = Field(ge=0)
+
+    @model_validator(mode="after")
+    def _check(self) -> ArrayDescriptor:
+        if self.dtype not in ALLOWED_DTYPES:
+            try:
+                dt = np.dtype(self.dtype)
+            except TypeError:
+                dt = None
+            if dt is not None and dt.byteorder == ">":
+                raise ArrayFieldError(
+                    "dtype", f"{self.dtype!r} is big-endian; expected little-endian {dt.newbyteorder('<').str!r}"
+                )
+            raise ArrayFieldError("dtype", f"{self.dtype!r} is not one of {', '.join(ALLOWED_DTYPES)}")
+        expected = math.prod(self.shape) * np.dtype(self.dtype).itemsize
+        if self.nbytes != expected:
+            raise ArrayFieldError(
+                "nbytes", f"{self.nbytes} does not match shape {tuple(self.shape)} × {self.dtype} = {expected}"
+            )
+        return self
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(
+        extra="ignore", allow_inf_nan=False, validate_assignment=True, arbitrary_types_allowed=False
+    )
+
+
+class Message(_Model):
+    """Base of every wire message."""
+
+    schema_name: str
+    schema_version: str = Field(default="1.0", pattern=VERSION_PATTERN, description="MAJOR.MINOR.")
+
+    @classmethod
+    def __pydantic_init_subclass__(cls, **kwargs: Any) -> None:
+        super().__pydantic_init_subclass__(**kwargs)
+        if "arrays" in cls.model_fields:
+            raise TypeError(f"{cls.__name__}: 'arrays' is reserved for the wire header's buffer list")
+
+    @classmethod
+    def version(cls) -> tuple[int, int]:
+        """(major, minor) this code writes; it reads any minor of the same major."""
+        major, minor = str(cls.model_fields["schema_version"].default).split(".")
+        return int(major), int(minor)
+
+
+# ---------------------------------------------------------------------------------------------- parts
+
+
+class Probe(_Model):
+    """Transducer array: element centres (N_u, 3) in metres (linear arrays have y = 0)."""
+
+    positions: Annotated[np.ndarray, _array("<f8", ndim=2, trailing=(3,), finite=True, min_size=3)]
+    pitch: float = Field(gt=0, description="Element pitch, m.")
+    centre_frequency: float = Field(gt=0, description="Hz.")
+    bandwidth: float = Field(gt=0, description="Full -6 dB bandwidth, Hz.")
+
+    @property
+    def n_elements(self) -> int:
+        return int(self.positions.shape[0])
+
+
+class Grid(_Model):
+    """Imaging grid axes in metres; ``y`` is None for a 2D (x–z) grid. Arrays on the grid have shape
+    (N_x, N_z) in 2D and (N_x, N_y, N_z) in 3D (fpcore.grid.Grid convention)."""
+
+    x: Annotated[np.ndarray, _AXIS]
+    y: Annotated[np.ndarray, _AXIS] | None = None
+    z: Annotated[np.ndarray, _AXIS]
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        axes = (self.x, self.z) if self.y is None else (self.x, self.y, self.z)
+        return tuple(int(a.size) for a in axes)
+
+    @classmethod
+    def from_grid(cls, grid: CoreGrid) -> Grid:
+        """From an ``fpcore.grid.Grid``."""
+        return cls(x=grid.x, y=grid.y, z=grid.z)
+
+    def to_grid(self) -> CoreGrid:
+        """As an ``fpcore.grid.Grid``."""
+        from fpcore.grid import Grid as CoreGrid
+
+        return CoreGrid(self.x, self.z, self.y)
+
+
+def _check_on_grid(field: str, arr: np.ndarray, grid: Grid) -> None:
+    if tuple(arr.shape) != grid.shape:
+        raise ArrayFieldError(field, f"expected the grid's shape {grid.shape}, got {tuple(arr.shape)}")
+
+
+class Normalisation(_Model):
+    """How γ was normalised. ``cauchy_schwarz``: γ = |Σ_f Tr R F†| / √(Σ_f‖R‖_F² Σ_f‖F‖_F²) (DESIGN §4.7),
+    so 0 ≤ γ ≤ 1."""
+
+    kind: str = "cauchy_schwarz"
+    band_hz: tuple[float, float] | None = Field(default=None, description="Band [f-, f+] used, Hz.")
+    r_energy: float | None = Field(default=None, ge=0, description="Σ_f ‖R(f)‖_F².")
+    f_energy: float | None = Field(default=None, ge=0, description="Σ_f ‖F(q,f)‖_F².")
+    gamma_m: float | None = Field(default=None, ge=0, description="γ_M = √⟨γ²⟩ over the map.")
+
+
+class Detection(_Model):
+    """One detected target."""
+
+    fingerprint: str = Field(description="Name of the fingerprint (dictionary entry) that matched.")
+    state: dict[str, float] = Field(default_factory=dict, description="Dictionary state q of the match.")
+    position_m: Vec3 = Field(description="[x, y, z], m.")
+    gamma_max: float = Field(ge=0, description="Peak likelihood index γ (≤ 1).")
+    contrast_c_gamma: float = Field(ge=0, description="C_γ = γ(target) / mean γ outside the target.")
+    contrast_c: float = Field(ge=0, description="C = (γ_max/γ_M)², γ_M = √⟨γ²⟩ (false-alarm contrast).")
+    pfa: float = Field(ge=0, le=1, description="False-alarm probability 1 − [1 − exp(−πC²/4)]^L.")
+    precision_m: tuple[float, float] = Field(description="Cramér–Rao precision [lateral, axial], m.")
+    truth_error_m: float | None = Field(default=None, ge=0, description="Distance to ground truth, m.")
+
+    @model_validator(mode="after")
+    def _check(self) -> Detection:
+        if min(self.precision_m) < 0:
+            raise ArrayFieldError("precision_m", f"expected non-negative values, got {self.precision_m}")
+        return self
+
+
+class Track(_Model):
+    """One track. ``covariance`` is the 3×3 position covariance (m²), symmetric."""
+
+    id: int = Field(ge=0)
+    position_m: Vec3
+    velocity_m_s: Vec3
+    covariance: tuple[Vec3, Vec3, Vec3]
+    confidence: float = Field(ge=0, le=1)
+    age: int = Field(ge=0, description="Frames since the track started.")
+
+    @model_validator(mode="after")
+    def _check(self) -> Track:
+        c = np.asarray(self.covariance)
+        if np.any(np.diag(c) < 0):
+            raise ArrayFieldError("covariance", "expected a non-negative diagonal")
+        if np.max(np.abs(c - c.T)) > 1e-6 * max(float(np.max(np.abs(c))), 1e-300):
+            raise ArrayFieldError("covariance", "expected a symmetric matrix")
+        return self
+
+
+class Latency(_Model):
+    """Processing latency statistics, ms (None before the first frame)."""
+
+    median: float | None = Field(default=None, ge=0)
+    p95: float | None = Field(default=None, ge=0)
+
+
+# ------------------------------------------------------------------------------------------- messages
+
+
+class RFFrame(Message):
+    """One plane-wave acquisition R(u_out, θ_in, t) (key ``fp/<rig>/rf``); sample n at t0 + n/fs."""
+
+    schema_name: Literal["RFFrame"] = "RFFrame"
+    frame_index: int = Field(ge=0)
+    timestamp: float = Field(description="Acquisition time, s (source clock).")
+    fs: float = Field(gt=0, description="Sampling frequency, Hz.")
+    t0: float = Field(description="Time of the first sample, s.")
+    c0: float = Field(gt=0, description="Sound speed, m/s.")
+    probe: Probe
+    sines: Annotated[np.ndarray, _array("<f8", ndim=2, trailing=(2,), finite=True, min_size=2)] = Field(
+        description="Transmit direction sines (N_θ, 2) = (s_x, s_y)."
+    )
+    rf: Annotated[np.ndarray, _array("<f4", "<i2", ndim=3, finite=True, min_size=1)] = Field(
+        description="RF data (N_u, N_θ, N_t), float32 or int16."
+    )
+    truth: dict[str, JsonValue] | None = Field(default=None, description="Ground truth (free JSON).")
+
+    @model_validator(mode="after")
+    def _check(self) -> RFFrame:
+        expected = (self.probe.n_elements, int(self.sines.shape[0]))
+        if tuple(self.rf.shape[:2]) != expected:
+            raise ArrayFieldError(
+                "rf", f"expected shape (N_u={expected[0]}, N_θ={expected[1]}, N_t), got {tuple(self.rf.shape)}"
+            )
+        if np.any(np.sum(self.sines**2, axis=1) >= 1.0):
+            raise ArrayFieldError("sines", "expected s_x² + s_y² < 1 for every transmit")
+        return self
+
+    @classmethod
+    def from_acquisition(cls, acq: Acquisition) -> RFFrame:
+        """From an ``fpcore.acquisition.Acquisition`` (arrays are shared, not copied)."""
+        p = acq.probe
+        return cls(
+            frame_index=acq.frame_index, timestamp=acq.timestamp, fs=acq.fs, t0=acq.t0, c0=acq.c0,
+            probe=Probe(positions=p.positions, pitch=p.pitch, centre_frequency=p.centre_frequency,
+                        bandwidth=p.bandwidth),
+            sines=acq.sequence.sines, rf=acq.rf, truth=dict(acq.truth) or None,
+        )
+
+    def to_acquisition(self) -> Acquisition:
+        """As an ``fpcore.acquisition.Acquisition`` (arrays are shared, not copied)."""
+        from fpcore.acquisition import Acquisition, PlaneWaveSequence
+        from fpcore.acquisition import Probe as CoreProbe
+
+        p = self.probe
+        return Acquisition(
+            rf=self.rf, fs=self.fs, t0=self.t0, c0=self.c0,
+            probe=CoreProbe(p.positions, p.pitch, p.centre_frequency, p.bandwidth),
+            sequence=PlaneWaveSequence(self.sines), frame_index=self.frame_index,
+            timestamp=self.timestamp, truth=dict(self.truth or {}),
+        )
+
+
+class GammaMap(Message):
+    """Likelihood map/volume γ(r) of one fingerprint for one frame (key ``fp/<rig>/gamma``)."""
+
+    schema_name: Literal["GammaMap"] = "GammaMap"
+    frame_index: int = Field(ge=0)
+    timestamp: float = Field(description="Acquisition time of the input frame, s.")
+    fingerprint: str
+    state: dict[str, float] = Field(default_factory=dict, description="Dictionary state q.")
+    grid: Grid
+    gamma: Annotated[np.ndarray, _array("<f4")] = Field(description="γ on the grid, float32.")
+    normalisation: Normalisation = Field(default_factory=Normalisation)
+
+    @model_validator(mode="after")
+    def _check(self) -> GammaMap:
+        _check_on_grid("gamma", self.gamma, self.grid)
+        return self
+
+
+class ConfocalImage(Message):
+    """Confocal image |I(r)|² (linear) or in dB (key ``fp/<rig>/image``)."""
+
+    schema_name: Literal["ConfocalImage"] = "ConfocalImage"
+    frame_index: int = Field(ge=0)
+    timestamp: float = Field(description="Acquisition time of the input frame, s.")
+    grid: Grid
+    image: Annotated[np.ndarray, _array("<f4")] = Field(description="Image on the grid, float32.")
+    scale: Literal["linear", "db"] = "linear"
+
+    @model_validator(mode="after")
+    def _check(self) -> ConfocalImage:
+        _check_on_grid("image", self.image, self.grid)
+        return self
+
+
+class Detections(Message):
+    """Targets detected in one frame (key ``fp/<rig>/detections``)."""
+
+    schema_name: Literal["Detections"] = "Detections"
+    frame_index: int = Field(ge=0)
+    timestamp: float = Field(description="Acquisition time of the input frame, s.")
+    detections: list[Detection] = Field(default_factory=list)
+
+
+class Tracks(Message):
+    """Active tracks after one frame (key ``fp/<rig>/tracks``)."""
+
+    schema_name: Literal["Tracks"] = "Tracks"
+    frame_index: int = Field(ge=0)
+    timestamp: float = Field(description="Acquisition time of the input frame, s.")
+    tracks: list[Track] = Field(default_factory=list)
+
+
+class Status(Message):
+    """Periodic node status (key ``fp/<rig>/status``)."""
+
+    schema_name: Literal["Status"] = "Status"
+    node: str
+    timestamp: float = Field(default_factory=time.time, description="Wall-clock time of the report, s.")
+    frames_processed: int = Field(default=0, ge=0)
+    frame_rate_hz: float = Field(default=0.0, ge=0)
+    latency_ms: Latency = Field(default_factory=Latency)
+    dropped: int = Field(default=0, ge=0, description="Frames dropped by keep-newest back-pressure.")
+    rejected: int = Field(default=0, ge=0, description="Messages refused as bad input.")
+    dictionary: list[str] = Field(default_factory=list, description="Names of the fingerprints held.")
+
+
+class ErrorReport(Message):
+    """A refused input (key ``fp/<rig>/errors``): which field, and what was expected."""
+
+    schema_name: Literal["ErrorReport"] = "ErrorReport"
+    frame_index: int | None = Field(default=None, ge=0)
+    key: str = Field(description="Key expression the bad message arrived on.")
+    field: str = Field(description="Field (dotted path) at fault.")
+    problem: str = Field(description="What is wrong and what was expected.")
+    header_excerpt: str = Field(default="", max_length=4096)
+    node: str = ""
+    timestamp: float = Field(default_factory=time.time, description="Wall-clock time of the report, s.")
+
+
+#: schema name → model class, for every message that can travel on the wire.
+MESSAGE_TYPES: dict[str, type[Message]] = {
+    cls.model_fields["schema_name"].default: cls
+    for cls in (RFFrame, GammaMap, ConfocalImage, Detections, Tracks, Status, ErrorReport)
+}
+
+
+def examples() -> dict[str, Message]:
+    """One small, valid instance of every message type (keyed by schema name), for tests and docs."""
+    n_u, n_theta, n_t = 4, 3, 16
+    x = (np.arange(n_u) - (n_u - 1) / 2) * 3e-4
+    probe = Probe(positions=np.stack([x, np.zeros(n_u), np.zeros(n_u)], axis=1), pitch=3e-4,
+                  centre_frequency=2.2e6, bandwidth=0.8e6)
+    sines = np.stack([np.linspace(-0.2, 0.2, n_theta), np.zeros(n_theta)], axis=1)
+    rf = np.sin(np.arange(n_u * n_theta * n_t, dtype=np.float32)).reshape(n_u, n_theta, n_t)
+    grid = Grid(x=np.linspace(-1e-3, 1e-3, 5), z=np.linspace(9e-3, 11e-3, 6))
+    ramp = np.linspace(0, 1, 30, dtype=np.float32).reshape(grid.shape)
+    det = Detection(fingerprint="sphere_10mm", position_m=(0.0, 0.0, 0.01), gamma_max=0.7, contrast_c_gamma=8.0,
+                    contrast_c=30.0, pfa=1e-6, precision_m=(1e-4, 2e-5))
+    track = Track(id=1, position_m=(0.0, 0.0, 0.01), velocity_m_s=(0.0, 0.0, 1e-3),
+                  covariance=((1e-8, 0.0, 0.0), (0.0, 1e-8, 0.0), (0.0, 0.0, 1e-8)), confidence=0.8, age=3)
+    msgs: list[Message] = [
+        RFFrame(frame_index=1, timestamp=0.1, fs=20e6, t0=0.0, c0=1500.0, probe=probe, sines=sines, rf=rf,
+                truth={"position_m": [0.0, 0.0, 0.01]}),
+        GammaMap(frame_index=1, timestamp=0.1, fingerprint="sphere_10mm", grid=grid, gamma=ramp),
+        ConfocalImage(frame_index=1, timestamp=0.1, grid=grid, image=ramp),
+        Detections(frame_index=1, timestamp=0.1, detections=[det]),
+        Tracks(frame_index=1, timestamp=0.1, tracks=[track]),
+        Status(node="processor", timestamp=0.0, frames_processed=1, dictionary=["sphere_10mm"]),
+        ErrorReport(frame_index=1, key="fp/demo/rf", field="rf", problem="contains NaN or inf", timestamp=0.0),
+    ]
+    return {m.schema_name: m for m in msgs}
