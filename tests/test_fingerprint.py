@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import born_points
 
 from fpcore import (
     Grid,
@@ -15,6 +14,7 @@ from fpcore import (
     mirror_fingerprint,
     point_fingerprint,
 )
+from fpcore.born import born_points
 from fpcore.dictionary import Dictionary, mirror_family
 
 BAND = (1.5e6, 3.5e6)
