@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .acquisition import Acquisition, PlaneWaveData, output_sines, to_plane_waves
-from .fingerprint import Fingerprint, check_geometry
+from .acquisition import Acquisition, PlaneWaveData, Probe, output_sines, to_plane_waves
+from .fingerprint import Fingerprint, angular_mask, check_geometry
 from .grid import Grid
 from .kernel import GridTransform, wavevectors
 
@@ -29,13 +29,19 @@ __all__ = ["Imager", "ImagingConfig"]
 @dataclass(frozen=True)
 class ImagingConfig:
     """What the processor does to every frame: band [f_min, f_max] (Hz), number of frequencies kept,
-    output directions (None: sampled from the probe, `output_sines`), grid, NUFFT accuracy."""
+    output directions (None: sampled from the probe, `output_sines`), grid, NUFFT accuracy.
+
+    apodization_tiles: split the grid into this many tiles per axis and apply the shift apodization
+    A(θ_out, r) A(θ_in, r) of paper eq. BF at each tile's centre (DESIGN §5); None: no shift apodization
+    (the angular filter acts at r0 only and ‖F(r)‖ is constant).
+    """
 
     grid: Grid
     band: tuple[float, float]
     n_freq: int | None = None
     out_sines: np.ndarray | None = None
     eps: float = 1e-5
+    apodization_tiles: tuple[int, ...] | None = None
 
 
 class Imager:
@@ -103,11 +109,55 @@ class Imager:
         """Confocal image I(r) = |B(r)|² (DESIGN §4.3), float32 on the grid."""
         return (np.abs(self.field(pw)) ** 2).astype(np.float32)
 
-    def gamma(self, pw: PlaneWaveData, fp: Fingerprint) -> np.ndarray:
-        """γ-map of one fingerprint on the grid, 0 ≤ γ ≤ 1 (paper eq. P, S7; DESIGN §4.7)."""
+    def gamma(self, pw: PlaneWaveData, fp: Fingerprint, probe: Probe | None = None) -> np.ndarray:
+        """γ-map of one fingerprint on the grid, 0 ≤ γ ≤ 1 (paper eq. P, S7; DESIGN §4.7).
+
+        With `apodization_tiles` set, `probe` gives the aperture of A(θ, r) (paper S2, Fig. S9).
+        """
         r = pw.data.ravel()
         r_norm = np.sqrt(float(np.vdot(r, r).real))
         if r_norm == 0:
             return np.zeros(self.grid.shape, dtype=np.float32)
+        if self.config.apodization_tiles is not None:
+            if probe is None:
+                raise ValueError("probe: needed for the shift apodization A(θ, r) (apodization_tiles is set)")
+            return self._gamma_tiled(pw, fp, probe, r, r_norm)
         num = self.kernel(pw).execute_ramped(r * self.template(pw, fp))
         return (np.abs(num) / r_norm).astype(np.float32)
+
+    def _tiles(self) -> list[tuple[tuple[slice, ...], Grid]]:
+        tiles = self.config.apodization_tiles or ()
+        if len(tiles) != self.grid.ndim:
+            raise ValueError(f"apodization_tiles: expected {self.grid.ndim} counts (one per axis), got {tiles}")
+        edges = [np.linspace(0, a.size, n + 1).astype(int) for a, n in zip(self.grid.axes, tiles, strict=True)]
+        out = []
+        for idx in np.ndindex(*tiles):
+            sl = tuple(slice(e[i], e[i + 1]) for e, i in zip(edges, idx, strict=True))
+            axes = [a[s] for a, s in zip(self.grid.axes, sl, strict=True)]
+            sub = Grid(axes[0], axes[-1], axes[1] if self.grid.ndim == 3 else None)
+            out.append((sl, sub))
+        return out
+
+    def _gamma_tiled(self, pw: PlaneWaveData, fp: Fingerprint, probe: Probe, r: np.ndarray,
+                     r_norm: float) -> np.ndarray:
+        """γ with S = A(θ, r_t) P(θ, Δr) per tile t (paper eq. BF), normalised by ‖F ∘ A‖ per tile."""
+        key = ("tiles", id(fp), self._key(pw))
+        cached = self._templates.get(key)
+        if cached is None:
+            check_geometry(fp, pw)
+            K = wavevectors(pw.freqs, pw.out_sines, pw.in_sines, pw.c0, self.grid.ndim)
+            base = fp.centred_conj(self.grid.ndim).reshape(fp.data.shape)
+            cached = []
+            for sl, sub in self._tiles():
+                centre = sub.centre_index_point()
+                a = (angular_mask(pw.out_sines, centre, probe)[:, None]
+                     & angular_mask(pw.in_sines, centre, probe)[None, :]).astype(np.float32)
+                t = (base * a[None]).ravel()
+                norm = float(np.sqrt(np.vdot(t, t).real))
+                kern = GridTransform(K, sub, eps=self.config.eps)
+                cached.append((sl, kern, t * kern.ramp / np.float32(max(norm, 1e-300))))
+            self._templates[key] = cached
+        out = np.zeros(self.grid.shape, dtype=np.float32)
+        for sl, kern, t in cached:
+            out[sl] = np.abs(kern.execute_ramped(r * t)) / r_norm
+        return out

@@ -132,3 +132,23 @@ def test_fft_dictionary_equals_exact_nufft(linear_setup, imager_2d: Imager) -> N
     fast = dic.evaluate(imager_2d, pw, method="fft", keep_all=True)
     ref = dic.evaluate(imager_2d, pw, method="exact", keep_all=True)
     assert np.abs(fast.per_state - ref.per_state).max() <= 1e-3 * ref.per_state.max()
+
+
+def test_tiled_shift_apodization_keeps_gamma_bounded_and_peaked(linear_setup) -> None:
+    import dataclasses
+
+    probe, seq = linear_setup
+    r0 = np.array([0.0, 0.0, 15e-3])
+    pts, amps = _cluster(r0, 1.5e-3)
+    cal = born_points(probe, seq, pts, amps)
+    grid = Grid.centred((0.0, 15e-3), (60, 64), LAM / 4)
+    plain = Imager(ImagingConfig(grid, BAND, n_freq=24))
+    tiled = Imager(dataclasses.replace(plain.config, apodization_tiles=(3, 2)))
+    fp = from_calibration(cal, r0, plain.out_sines_for(cal), BAND, 24, diameter=3e-3)
+    pw = plain.plane_waves(cal)
+    with pytest.raises(ValueError, match="probe"):
+        tiled.gamma(pw, fp)
+    gam = tiled.gamma(pw, fp, probe)
+    assert 0.0 <= gam.min() and gam.max() <= 1.0 + 1e-6
+    peak = grid.position(np.unravel_index(int(gam.argmax()), gam.shape))
+    assert np.linalg.norm(peak - r0) <= max(grid.spacing) * 1.5
