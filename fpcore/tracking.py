@@ -1,0 +1,271 @@
+"""Tracking moving targets through the fog on γ-maps (issue 5; DESIGN.md §1, §4.8–4.10).
+
+Per-frame detection alone fails on deep frames: the global γ maximum can jump to a fog fluctuation
+while the target's γ stays high near its last position. The tracker therefore:
+
+* predicts each track with a constant-velocity Kalman filter (filterpy's `KalmanFilter`; white-noise
+  acceleration process noise);
+* searches the γ-map only inside a gate around the prediction (Mahalanobis radius `gate_sigma` of the
+  innovation covariance, at least `min_gate`), so the false-alarm probability of the gated maximum is
+  computed with the number of speckle grains L inside the gate, not in the whole field of view
+  (paper S6 with L → L_gate): PFA = 1 − [1 − exp(−π C²/4)]^{L_gate}, C = (γ/γ_M)²;
+* uses the Cramér–Rao precision of each measurement as its noise, R = diag(δρ_L², …, δz²) with
+  δρ_L = δρ_D/√C_γ (paper eq. loc) and, axially, the envelope resolution c0/(2Δf)/√C_γ (the peak of |γ|
+  carries no carrier phase, so the paper's λ-based axial bound is not reached by this estimator),
+  floored at the grid's quantisation variance spacing²/12;
+* assigns candidates to tracks by `scipy.optimize.linear_sum_assignment` on Mahalanobis distances,
+  starts a track from an unassigned peak whose field-of-view PFA is below `p_birth`, confirms it after
+  `confirm_hits` hits and drops it after `max_misses` consecutive misses;
+* reports confidence = 1 − PFA of the last accepted measurement, decayed by misses.
+
+Tracks follow one fingerprint each (the γ-map they live on); several tracks may share a fingerprint.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from filterpy.kalman import KalmanFilter
+from scipy.optimize import linear_sum_assignment
+
+from .grid import Grid
+from .metrics import cramer_rao_precision, detect, diffraction_resolution, pfa, refine_peak
+
+__all__ = ["TrackerConfig", "TrackState", "Tracker"]
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """Tracker settings (SI units)."""
+
+    accel_noise: float = 0.05  # m/s², white-acceleration spectral level of the CV model
+    gate_sigma: float = 4.0  # gate radius in standard deviations of the innovation
+    min_gate: float | None = None  # m; default 2 δρ_D
+    p_keep: float = 1e-2  # gated PFA below which a measurement is accepted
+    p_birth: float = 1e-4  # field-of-view PFA below which an unassigned peak starts a track
+    confirm_hits: int = 2
+    max_misses: int = 5
+    max_tracks_per_map: int = 2
+    default_dt: float = 0.1  # s, when frames carry no distinct timestamps
+    initial_speed_sigma: float = 5e-3  # m/s, prior on a new track's speed
+
+
+@dataclass
+class TrackState:
+    """What a track publishes per frame (positions (x, y, z), y = 0 on 2D grids)."""
+
+    track_id: int
+    fingerprint: str
+    position_m: list[float]
+    velocity_m_s: list[float]
+    covariance_m2: list[list[float]]
+    confidence: float
+    age: int
+    status: str
+    measured: bool
+    gamma: float
+    pfa: float
+
+
+@dataclass
+class _Track:
+    track_id: int
+    fingerprint: str
+    kf: KalmanFilter
+    age: int = 0
+    hits: int = 1
+    misses: int = 0
+    confidence: float = 0.0
+    last_pfa: float = 1.0
+    gamma: float = 0.0
+    measured: bool = True
+    history: list[np.ndarray] = field(default_factory=list)
+
+    @property
+    def status(self) -> str:
+        return "confirmed" if self.hits >= 2 else "tentative"
+
+
+class Tracker:
+    """Multi-target tracker over γ-maps of a fixed grid."""
+
+    def __init__(self, grid: Grid, wavelength: float, aperture: float, bandwidth: float, c0: float,
+                 config: TrackerConfig | None = None) -> None:
+        self.grid = grid
+        self.wavelength = wavelength
+        self.aperture = aperture
+        self.bandwidth = bandwidth
+        self.c0 = c0
+        self.config = config or TrackerConfig()
+        self.tracks: list[_Track] = []
+        self._next_id = 1
+        self._last_time: float | None = None
+        self._mesh = np.meshgrid(*grid.axes, indexing="ij")
+        self.nd = grid.ndim
+
+    # --- geometry helpers -------------------------------------------------------------------
+    def _coords(self, r3: np.ndarray) -> np.ndarray:
+        return np.asarray(r3, float)[[0, 2]] if self.nd == 2 else np.asarray(r3, float)
+
+    def _r3(self, c: np.ndarray) -> np.ndarray:
+        return np.array([c[0], 0.0, c[1]]) if self.nd == 2 else np.asarray(c, float)
+
+    def _resolution(self, depth: float) -> tuple[float, float]:
+        return diffraction_resolution(self.wavelength, self.aperture, max(depth, self.wavelength)), \
+            self.c0 / (2 * self.bandwidth)
+
+    def _noise(self, c_gamma: float, depth: float) -> np.ndarray:
+        """Measurement covariance from the Cramér–Rao precision (paper eq. loc, DESIGN §4.10)."""
+        res, ax_res = self._resolution(depth)
+        lat, _ = cramer_rao_precision(self.wavelength, res, c_gamma)
+        # Axial: the tracker reads the envelope |γ| peak, which does not use the carrier phase that
+        # the paper's axial bound (eq. axial2) assumes; its precision scales with the envelope's axial
+        # resolution c0/(2Δf), so δz = c0/(2Δf)/√C_γ (same √C_γ law as eq. loc).
+        ax = ax_res / np.sqrt(max(c_gamma, 1e-12))
+        # Floor: the peak is read on the grid (parabolic refinement), σ ≥ spacing/√12 per axis.
+        floor = np.asarray(self.grid.spacing) ** 2 / 12
+        return np.diag(np.maximum([lat ** 2] * (self.nd - 1) + [ax ** 2], floor))
+
+    def _new_filter(self, c: np.ndarray, meas_cov: np.ndarray) -> KalmanFilter:
+        nd = self.nd
+        kf = KalmanFilter(dim_x=2 * nd, dim_z=nd)
+        kf.x = np.concatenate([c, np.zeros(nd)])
+        kf.H = np.hstack([np.eye(nd), np.zeros((nd, nd))])
+        kf.P = np.block([[meas_cov, np.zeros((nd, nd))],
+                         [np.zeros((nd, nd)), np.eye(nd) * self.config.initial_speed_sigma ** 2]])
+        return kf
+
+    def _set_dynamics(self, kf: KalmanFilter, dt: float) -> None:
+        nd = self.nd
+        kf.F = np.block([[np.eye(nd), dt * np.eye(nd)], [np.zeros((nd, nd)), np.eye(nd)]])
+        q = self.config.accel_noise ** 2
+        kf.Q = q * np.block([[dt ** 4 / 4 * np.eye(nd), dt ** 3 / 2 * np.eye(nd)],
+                             [dt ** 3 / 2 * np.eye(nd), dt ** 2 * np.eye(nd)]])
+
+    # --- per-frame update -------------------------------------------------------------------
+    def update(self, gamma_maps: dict[str, np.ndarray], timestamp: float | None = None) -> list[TrackState]:
+        """Advance all tracks with this frame's γ-maps (one per fingerprint name)."""
+        dt = self.config.default_dt
+        if timestamp is not None and self._last_time is not None and timestamp > self._last_time:
+            dt = timestamp - self._last_time
+        self._last_time = timestamp if timestamp is not None else (self._last_time or 0.0) + dt
+        for tr in self.tracks:
+            self._set_dynamics(tr.kf, dt)
+            tr.kf.predict()
+            tr.age += 1
+        for name, gamma in gamma_maps.items():
+            self._update_map(name, np.asarray(gamma, np.float32))
+        self.tracks = [t for t in self.tracks if t.misses <= self.config.max_misses]
+        return self.states()
+
+    def _background(self, gamma: np.ndarray, centres: list[np.ndarray]) -> tuple[float, float]:
+        outside = np.ones(gamma.shape, bool)
+        for c in centres:
+            res, _ = self._resolution(c[-1])
+            d2 = sum((m - ci) ** 2 for m, ci in zip(self._mesh, c, strict=True))
+            outside &= d2 > (2 * res) ** 2
+        g = gamma[outside] if outside.any() else gamma.ravel()
+        return float(g.mean()), float(np.sqrt(np.mean(g.astype(np.float64) ** 2)))
+
+    def _gated_peak(self, gamma: np.ndarray, tr: _Track) -> tuple[np.ndarray, float, float, np.ndarray] | None:
+        """Maximum of γ inside the track's gate: (coords, γ, number of grains in the gate, S)."""
+        kf = tr.kf
+        depth = kf.x[self.nd - 1]
+        res, ax_res = self._resolution(depth)
+        s_cov = kf.H @ kf.P @ kf.H.T + self._noise(4.0, depth)  # nominal C_γ for the gate size
+        radius = self.config.gate_sigma * np.sqrt(np.linalg.eigvalsh(s_cov).max())
+        radius = max(radius, self.config.min_gate or 2 * res)
+        pred = kf.x[: self.nd]
+        d2 = sum((m - ci) ** 2 for m, ci in zip(self._mesh, pred, strict=True))
+        inside = d2 <= radius ** 2
+        if not inside.any():
+            return None
+        masked = np.where(inside, gamma, -np.inf)
+        idx = np.unravel_index(int(np.argmax(masked)), gamma.shape)
+        pos3, val = refine_peak(gamma, self.grid, idx)
+        grain = res * ax_res if self.nd == 2 else res ** 2 * ax_res
+        cell = float(np.prod(self.grid.spacing))
+        n_grains = max(inside.sum() * cell / grain, 1.0)
+        return self._coords(pos3), val, n_grains, s_cov
+
+    def _update_map(self, name: str, gamma: np.ndarray) -> None:
+        cfg = self.config
+        tracks = [t for t in self.tracks if t.fingerprint == name]
+        gated = [self._gated_peak(gamma, t) for t in tracks]
+        mean, g_m = self._background(gamma, [t.kf.x[: self.nd] for t in tracks])
+        # Candidates: each track's gated maximum; cost = Mahalanobis distance² to each track.
+        cands = [g for g in gated if g is not None]
+        assigned: dict[int, int] = {}
+        if tracks and cands:
+            cost = np.full((len(tracks), len(cands)), 1e9)
+            for i, tr in enumerate(tracks):
+                for j, (c, _, _, _) in enumerate(cands):
+                    s_cov = gated[i][3] if gated[i] is not None else np.eye(self.nd)
+                    v = c - tr.kf.x[: self.nd]
+                    m2 = float(v @ np.linalg.solve(s_cov, v))
+                    if m2 <= cfg.gate_sigma ** 2:
+                        cost[i, j] = m2
+            rows, cols = linear_sum_assignment(cost)
+            assigned = {int(r): int(c) for r, c in zip(rows, cols, strict=True) if cost[r, c] < 1e9}
+        for i, tr in enumerate(tracks):
+            j = assigned.get(i)
+            if j is None:
+                self._miss(tr)
+                continue
+            c, val, n_grains, _ = cands[j]
+            c_gamma = val / mean if mean > 0 else np.inf
+            p = float(pfa((val / g_m) ** 2 if g_m > 0 else np.inf, n_grains))
+            if p > cfg.p_keep:
+                self._miss(tr)
+                continue
+            tr.kf.update(c, R=self._noise(c_gamma, c[-1]))
+            tr.hits += 1
+            tr.misses = 0
+            tr.measured = True
+            tr.gamma = val
+            tr.last_pfa = p
+            tr.confidence = 1.0 - p
+            tr.history.append(tr.kf.x[: self.nd].copy())
+        self._births(name, gamma, tracks)
+
+    def _miss(self, tr: _Track) -> None:
+        tr.misses += 1
+        tr.measured = False
+        tr.confidence *= 0.5
+        tr.history.append(tr.kf.x[: self.nd].copy())
+
+    def _births(self, name: str, gamma: np.ndarray, tracks: list[_Track]) -> None:
+        cfg = self.config
+        if len(tracks) >= cfg.max_tracks_per_map:
+            return
+        dets = detect(gamma, self.grid, self.wavelength, self.aperture, self.bandwidth, self.c0, name=name,
+                      n_peaks=cfg.max_tracks_per_map)
+        for det in dets:
+            if len([t for t in self.tracks if t.fingerprint == name]) >= cfg.max_tracks_per_map:
+                break
+            if det.pfa > cfg.p_birth:
+                continue
+            c = self._coords(np.array(det.position_m))
+            res, _ = self._resolution(c[-1])
+            if any(np.linalg.norm(t.kf.x[: self.nd] - c) < 4 * res for t in self.tracks if t.fingerprint == name):
+                continue
+            kf = self._new_filter(c, self._noise(det.c_gamma, c[-1]))
+            tr = _Track(self._next_id, name, kf, gamma=det.gamma_max, last_pfa=det.pfa, confidence=1 - det.pfa)
+            tr.history.append(c.copy())
+            self._next_id += 1
+            self.tracks.append(tr)
+
+    def states(self) -> list[TrackState]:
+        out = []
+        for t in self.tracks:
+            nd = self.nd
+            pos = self._r3(t.kf.x[:nd])
+            vel = self._r3(t.kf.x[nd:])
+            cov = np.zeros((3, 3))
+            sel = [0, 2] if nd == 2 else [0, 1, 2]
+            cov[np.ix_(sel, sel)] = t.kf.P[:nd, :nd]
+            out.append(TrackState(t.track_id, t.fingerprint, pos.tolist(), vel.tolist(), cov.tolist(),
+                                  float(t.confidence), t.age, t.status, t.measured, float(t.gamma),
+                                  float(t.last_pfa)))
+        return out
