@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .locate import add_locate_parser, run_locate
+
 __all__ = ["main"]
 
 
@@ -33,36 +35,6 @@ def _demo_scene(rng: np.random.Generator, n_frames: int):
     return probe, seq, offs, amps, path
 
 
-def _figure(path: Path, grid, confocal: np.ndarray, gamma: np.ndarray, truth: np.ndarray, found: np.ndarray,
-            title: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    ext = [grid.x[0] * 1e3, grid.x[-1] * 1e3, grid.z[-1] * 1e3, grid.z[0] * 1e3]
-    conf_db = 10 * np.log10(confocal / confocal.max() + 1e-12)
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.6), constrained_layout=True)
-    for ax, overlay in zip(axes, (False, True), strict=True):
-        ax.imshow(conf_db.T, extent=ext, cmap="gray", vmin=-30, vmax=0, aspect="equal")
-        if overlay:
-            g = np.ma.masked_less(gamma.T, 0.6 * gamma.max())
-            im = ax.imshow(g, extent=ext, cmap="autumn", alpha=0.8, aspect="equal")
-            fig.colorbar(im, ax=ax, label="γ", shrink=0.8)
-            ax.set_title("γ (≥ 60 % of its max, red) over the confocal image")
-        else:
-            ax.set_title("confocal image (dB): the target is lost in speckle")
-        ax.plot(truth[0] * 1e3, truth[2] * 1e3, "o", mfc="none", mec="cyan", ms=16, label="truth")
-        if overlay:
-            ax.plot(found[0] * 1e3, found[2] * 1e3, "+", color="lime", ms=14, mew=2, label="detection")
-        ax.set_xlabel("x (mm)")
-        ax.set_ylabel("z (mm)")
-        ax.legend(loc="lower right", fontsize=8)
-    fig.suptitle(title)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
 def cmd_demo(args: argparse.Namespace) -> int:
     """Offline demo of the fingerprint pipeline on the built-in simulated scene."""
     from rich.console import Console
@@ -71,6 +43,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     from fpcore import Grid, Imager, ImagingConfig, contrasts, detect, from_calibration
     from fpcore.born import born_points
+
+    from .figures import gamma_over_confocal
 
     if args.frames < 1:
         raise ValueError(f"--frames: expected at least 1, got {args.frames}")
@@ -124,7 +98,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     title = (f"frame {k}: detection error {err * 1e3:.2f} mm, C_γ = {det.c_gamma:.1f}, PFA = {det.pfa:.1e}, "
              f"confocal contrast {c_conf:.2f}")
     png = out / "demo_gamma_over_confocal.png"
-    _figure(png, grid, conf, gamma, path[-1], pos, title)
+    gamma_over_confocal(png, grid, conf, gamma, pos, truth=path[-1], title=title)
     errors = np.array([r["error_m"] for r in rows])
     summary = {"frames": rows, "n_s": fp.n_s, "n_t": fp.n_t, "gain_estimate": fp.n_s * fp.n_t,
                "rms_error_m": float(np.sqrt(np.mean(errors ** 2))), "max_error_m": float(errors.max()),
@@ -146,6 +120,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     demo.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     demo.set_defaults(func=cmd_demo)
+    add_locate_parser(sub)
+    sub.choices["locate"].set_defaults(func=run_locate)
     return ap
 
 

@@ -1,0 +1,81 @@
+"""`fp locate` on UFF files: positions within 1 mm of the truth, units, and one-line user errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from fpcore import Acquisition, PlaneWaveSequence, Probe
+from fpcore.born import born_points
+from fpcore.io import write_uff
+from services.cli import main
+from services.units import UnitError, parse_band, parse_length, parse_position
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("loc")
+    rng = np.random.default_rng(1)
+    probe = Probe.linear(48, 0.3e-3, 2.5e6, 1.5e6)
+    seq = PlaneWaveSequence.from_angles(np.linspace(-12, 12, 7))
+    offs = rng.uniform(-1.2e-3, 1.2e-3, (10, 3))
+    offs[:, 1] = 0.0
+    amps = rng.uniform(0.5, 1.0, 10)
+    r0 = np.array([0.0, 0.0, 15e-3])
+    cal = born_points(probe, seq, r0 + offs, amps, n_t=800)
+    cal.truth = {"targets": [{"name": "marker", "position_m": r0.tolist(), "diameter_m": 2.4e-3}]}
+    write_uff(d / "cal.uff", cal)
+    speckle = np.stack([rng.uniform(-7e-3, 7e-3, 300), np.zeros(300), rng.uniform(8e-3, 25e-3, 300)], axis=1)
+    frames = []
+    for k in range(2):
+        t = np.array([-1e-3 + k * 1e-3, 0.0, 14e-3 + 2e-3 * k])
+        a = born_points(probe, seq, np.concatenate([t + offs, speckle]),
+                        np.concatenate([amps, 0.4 * rng.standard_normal(300)]), n_t=800, frame_index=k)
+        a.truth = {"targets": [{"name": "marker", "position_m": t.tolist()}]}
+        frames.append(a)
+    write_uff(d / "data.uff", frames)
+    bad = Acquisition(cal.rf[:, :, ::2].copy(), cal.fs / 2, cal.t0, cal.c0, cal.probe, cal.sequence)
+    write_uff(d / "bad_cal.uff", bad)
+    return d
+
+
+def test_locate_finds_targets_within_1mm(files, tmp_path) -> None:
+    out = tmp_path / "loc.json"
+    png = tmp_path / "loc.png"
+    rc = main(["locate", str(files / "data.uff"), "--calibration", str(files / "cal.uff"), "--z", "8mm:24mm",
+               "--n-freq", "24", "--json", str(out), "--png", str(png)])
+    assert rc == 0
+    doc = json.loads(out.read_text())
+    assert [f["frame_index"] for f in doc["frames"]] == [0, 1]
+    for f in doc["frames"]:
+        det = f["detections"][0]
+        assert det["truth_error_m"] < 1e-3
+        assert 0 < det["gamma_max"] <= 1 and det["pfa"] < 1e-6
+        assert set(det) >= {"position_m", "precision_m", "c_gamma", "c_pfa"}
+    assert png.stat().st_size > 10_000
+
+
+def test_mismatched_calibration_is_one_error_line(files, capsys) -> None:
+    rc = main(["locate", str(files / "data.uff"), "--calibration", str(files / "bad_cal.uff")])
+    assert rc == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "sampling_frequency" in err[0]
+
+
+def test_missing_file_and_bad_unit_are_clear(files, capsys) -> None:
+    assert main(["locate", str(files / "nope.uff"), "--model", "point"]) == 2
+    assert main(["locate", str(files / "data.uff"), "--model", "point", "--z", "8furlong:20mm"]) == 2
+    err = capsys.readouterr().err
+    assert "nope.uff" in err and "--z" in err and "Traceback" not in err
+
+
+def test_units() -> None:
+    assert parse_length("25mm") == pytest.approx(0.025)
+    assert parse_length("0.02") == pytest.approx(0.02)
+    assert parse_position("0,25mm") == pytest.approx([0.0, 0.025])
+    assert parse_position("1,2,25mm") == pytest.approx([1e-3, 2e-3, 25e-3])
+    assert parse_band("1.8:2.6MHz") == pytest.approx((1.8e6, 2.6e6))
+    with pytest.raises(UnitError, match="--band"):
+        parse_band("2.6MHz:1.8MHz")
