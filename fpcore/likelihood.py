@@ -22,6 +22,14 @@ from .acquisition import Acquisition, PlaneWaveData, Probe, output_sines, to_pla
 from .fingerprint import Fingerprint, angular_mask, check_geometry
 from .grid import Grid
 from .kernel import GridTransform, wavevectors
+from .kernel_presum import PresumTransform
+
+
+def _presum_ok(pw: PlaneWaveData, ndim: int) -> bool:
+    try:
+        return PresumTransform.applicable(pw.out_sines, pw.in_sines, ndim)
+    except ImportError:  # numba missing: the general kernel serves
+        return False
 
 __all__ = ["Imager", "ImagingConfig"]
 
@@ -31,6 +39,7 @@ class ImagingConfig:
     """What the processor does to every frame: band [f_min, f_max] (Hz), number of frequencies kept,
     output directions (None: sampled from the probe, `output_sines`), grid, NUFFT accuracy.
 
+    kernel: 'auto' (structured pre-sum kernel when the sines allow it, else finufft), 'nufft' or 'presum'.
     apodization_tiles: split the grid into this many tiles per axis and apply the shift apodization
     A(θ_out, r) A(θ_in, r) of paper eq. BF at each tile's centre (DESIGN §5); None: no shift apodization
     (the angular filter acts at r0 only and ‖F(r)‖ is constant).
@@ -42,6 +51,7 @@ class ImagingConfig:
     out_sines: np.ndarray | None = None
     eps: float = 1e-5
     apodization_tiles: tuple[int, ...] | None = None
+    kernel: str = "auto"
 
 
 class Imager:
@@ -74,14 +84,26 @@ class Imager:
     def _key(pw: PlaneWaveData) -> tuple:
         return (pw.data.shape, pw.freqs.tobytes(), pw.out_sines.tobytes(), pw.in_sines.tobytes(), float(pw.c0))
 
-    def kernel(self, pw: PlaneWaveData) -> GridTransform:
+    def kernel(self, pw: PlaneWaveData) -> GridTransform | PresumTransform:
+        """The kernel for this geometry: the structured pre-sum kernel when transmit and output sines
+        lie on one lattice (DESIGN §5, fpcore.kernel_presum), else the general finufft type-1."""
         key = self._key(pw)
         kern = self._kernels.get(key)
         if kern is None:
-            K = wavevectors(pw.freqs, pw.out_sines, pw.in_sines, pw.c0, self.grid.ndim)
-            kern = GridTransform(K, self.grid, eps=self.config.eps)
+            if self.config.kernel in ("auto", "presum") and _presum_ok(pw, self.grid.ndim):
+                kern = PresumTransform(pw.freqs, pw.out_sines, pw.in_sines, pw.c0, self.grid, eps=self.config.eps)
+            elif self.config.kernel == "presum":
+                raise ValueError("kernel: 'presum' needs transmit and output sines on one lattice")
+            else:
+                K = wavevectors(pw.freqs, pw.out_sines, pw.in_sines, pw.c0, self.grid.ndim)
+                kern = GridTransform(K, self.grid, eps=self.config.eps)
             self._kernels[key] = kern
         return kern
+
+    def _run(self, pw: PlaneWaveData, weights: np.ndarray) -> np.ndarray:
+        """Σ w e^{iK·r} for weights already multiplied by the kernel's ramp where it has one."""
+        kern = self.kernel(pw)
+        return kern.execute_ramped(weights) if isinstance(kern, GridTransform) else kern(weights)
 
     def template(self, pw: PlaneWaveData, fp: Fingerprint) -> np.ndarray:
         """conj(F(r0)) e^{-iK·r0} / ‖F‖ times the kernel's grid ramp, cached per fingerprint object."""
@@ -92,7 +114,9 @@ class Imager:
             norm = np.sqrt(fp.norm2)
             if norm == 0:
                 raise ValueError(f"fingerprint '{fp.name}': is identically zero (gate or filter removed all)")
-            t = fp.centred_conj(self.grid.ndim) * (self.kernel(pw).ramp / np.float32(norm))
+            kern = self.kernel(pw)
+            ramp = kern.ramp if isinstance(kern, GridTransform) else np.complex64(1.0)
+            t = fp.centred_conj(self.grid.ndim) * (ramp / np.float32(norm))
             self._templates[key] = t
         return t
 
@@ -122,7 +146,7 @@ class Imager:
             if probe is None:
                 raise ValueError("probe: needed for the shift apodization A(θ, r) (apodization_tiles is set)")
             return self._gamma_tiled(pw, fp, probe, r, r_norm)
-        num = self.kernel(pw).execute_ramped(r * self.template(pw, fp))
+        num = self._run(pw, r * self.template(pw, fp))
         return (np.abs(num) / r_norm).astype(np.float32)
 
     def _tiles(self) -> list[tuple[tuple[slice, ...], Grid]]:
