@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from .locate import add_locate_parser, run_locate
+from .simulate_cmd import add_simulate_parser
 
 __all__ = ["main"]
 
@@ -122,6 +123,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=cmd_demo)
     add_locate_parser(sub)
     sub.choices["locate"].set_defaults(func=run_locate)
+    add_simulate_parser(sub)
     return ap
 
 
