@@ -187,14 +187,17 @@ class Acquisition:
     def spectrum(self, f_min: float, f_max: float, n_freq: int | None = None) -> Spectrum:
         """Band [f_min, f_max] of R(f) = ∫ R(t) e^{-i2πft} dt (paper eq. 0, DESIGN §4.1).
 
-        The time axis is zero-padded so that at least n_freq bins fall in the band; with n_freq
-        given, n_freq bins evenly spread over the band are kept. The phase accounts for t0.
+        Frequency sampling sets the unambiguous delay window 1/Δf of every map: a fingerprint shifted
+        so that its echo ends past the window wraps onto the record's start. With n_freq None the record
+        is zero-padded 2× and every bin of the band is kept (window = twice the record: no wrap). With
+        n_freq given, n_freq bins evenly spread over the band are kept (window = (n_freq − 1)/band
+        width; choose n_freq ≥ band width × (record + target echo duration)). The phase accounts for t0.
         """
         if not (0 <= f_min < f_max <= self.fs / 2):
             raise ValueError(f"band: expected 0 <= f_min < f_max <= fs/2 = {self.fs / 2:g} Hz, "
                              f"got [{f_min:g}, {f_max:g}]")
         n_t = self.n_samples
-        n_fft = n_t
+        n_fft = 2 * n_t
         if n_freq is not None:
             # Bin spacing fs/n_fft must give at least n_freq bins in the band.
             n_fft = max(n_t, int(np.ceil(n_freq * self.fs / (f_max - f_min))))

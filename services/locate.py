@@ -42,9 +42,11 @@ def add_locate_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--diameter", help="target size for the time gate, e.g. 10mm (default: from the truth, else 0)")
     p.add_argument("--dataset", help="dataset name inside the UFF file(s) when there are several")
     p.add_argument("--band", help="frequency band f_min:f_max, e.g. 1.8MHz:2.6MHz (default: probe's -6 dB band)")
-    p.add_argument("--n-freq", type=int, default=40, help="number of frequencies kept in the band (default 40)")
-    p.add_argument("--x", dest="x_range", help="lateral range of the grid, e.g. -8mm:8mm (default: the aperture)")
-    p.add_argument("--y", dest="y_range", help="elevation range (3D), e.g. -8mm:8mm (default: the aperture)")
+    p.add_argument("--n-freq", type=int, default=None,
+                   help="frequencies kept in the band; it sets the delay window (n−1)/bandwidth, so keep it ≥ "
+                        "bandwidth × record length (default: every bin of the 2× zero-padded record)")
+    p.add_argument("--x", dest="x_range", help="lateral range of the grid, e.g. --x=-8mm:8mm (default: the transmit fan over the aperture)")
+    p.add_argument("--y", dest="y_range", help="elevation range (3D), e.g. --y=-8mm:8mm (default: as --x)")
     p.add_argument("--z", dest="z_range", help="depth range, e.g. 10mm:40mm (default: the record's time window)")
     p.add_argument("--spacing", help="grid spacing (default λ_min/3 in 2D, λ_min/2 in 3D)")
     p.add_argument("--n-out", type=int, help="output directions per lateral axis (default: elements per axis)")
@@ -60,13 +62,17 @@ def default_grid(acq: Acquisition, band: tuple[float, float], args: argparse.Nam
     lam = acq.c0 / band[1]
     spacing = parse_length(args.spacing, "--spacing") if args.spacing else lam / (3 if acq.probe.is_linear else 2)
     ax, ay = acq.probe.aperture
-    x = parse_range(args.x_range, "--x") if args.x_range else (-ax / 2, ax / 2)
     t = acq.times
     z_lo = max(acq.c0 * t[0] / 2, 2 * lam)
     z = parse_range(args.z_range, "--z") if args.z_range else (z_lo, acq.c0 * t[-1] / 2)
+    # Lateral default: the aperture widened by the transmit fan at the deepest point (≤ 2× aperture).
+    s = np.abs(acq.sequence.sines).max(axis=0)
+    fan = z[1] * s / np.sqrt(1 - s ** 2)
+    half = [min(a / 2 + f, a) for a, f in zip((ax, ay), fan, strict=True)]
+    x = parse_range(args.x_range, "--x") if args.x_range else (-half[0], half[0])
     if acq.probe.is_linear:
         return Grid.regular(x, z, spacing)
-    y = parse_range(args.y_range, "--y") if args.y_range else (-ay / 2, ay / 2)
+    y = parse_range(args.y_range, "--y") if args.y_range else (-half[1], half[1])
     return Grid.regular(x, z, spacing, y_range=y)
 
 
