@@ -184,12 +184,13 @@ class Acquisition:
     def times(self) -> np.ndarray:
         return self.t0 + np.arange(self.n_samples) / self.fs
 
-    def spectrum(self, f_min: float, f_max: float, n_freq: int | None = None) -> Spectrum:
+    def spectrum(self, f_min: float, f_max: float, n_freq: int | None = None, pad: int = 2) -> Spectrum:
         """Band [f_min, f_max] of R(f) = ∫ R(t) e^{-i2πft} dt (paper eq. 0, DESIGN §4.1).
 
         Frequency sampling sets the unambiguous delay window 1/Δf of every map: a fingerprint shifted
         so that its echo ends past the window wraps onto the record's start. With n_freq None the record
-        is zero-padded 2× and every bin of the band is kept (window = twice the record: no wrap). With
+        is zero-padded `pad`× (default 2) and every bin of the band is kept (window = pad × record: no wrap
+        for pad ≥ 2; pad = 1 gives the record's own DFT bins). With
         n_freq given, n_freq bins evenly spread over the band are kept (window = (n_freq − 1)/band
         width; choose n_freq ≥ band width × (record + target echo duration)). The phase accounts for t0.
         """
@@ -197,7 +198,9 @@ class Acquisition:
             raise ValueError(f"band: expected 0 <= f_min < f_max <= fs/2 = {self.fs / 2:g} Hz, "
                              f"got [{f_min:g}, {f_max:g}]")
         n_t = self.n_samples
-        n_fft = 2 * n_t
+        if pad < 1:
+            raise ValueError(f"pad: expected an integer >= 1, got {pad}")
+        n_fft = pad * n_t
         if n_freq is not None:
             # Bin spacing fs/n_fft must give at least n_freq bins in the band.
             n_fft = max(n_t, int(np.ceil(n_freq * self.fs / (f_max - f_min))))

@@ -43,9 +43,10 @@ def add_locate_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dataset", help="dataset name inside the UFF file(s) when there are several")
     p.add_argument("--band", help="frequency band f_min:f_max, e.g. 1.8MHz:2.6MHz (default: probe's -6 dB band)")
     p.add_argument("--n-freq", type=int, default=None,
-                   help="frequencies kept in the band; it sets the delay window (n−1)/bandwidth, so keep it ≥ "
-                        "bandwidth × record length (default: every bin of the 2× zero-padded record)")
-    p.add_argument("--x", dest="x_range", help="lateral range of the grid, e.g. --x=-8mm:8mm (default: the transmit fan over the aperture)")
+                   help="frequencies kept in the band; it sets the delay window (n−1)/bandwidth, so keep "
+                        "it ≥ bandwidth × record length (default: every bin of the 2× zero-padded record)")
+    p.add_argument("--x", dest="x_range", help="lateral range of the grid, e.g. --x=-8mm:8mm "
+                   "(default: the transmit fan over the aperture)")
     p.add_argument("--y", dest="y_range", help="elevation range (3D), e.g. --y=-8mm:8mm (default: as --x)")
     p.add_argument("--z", dest="z_range", help="depth range, e.g. 10mm:40mm (default: the record's time window)")
     p.add_argument("--spacing", help="grid spacing (default λ_min/3 in 2D, λ_min/2 in 3D)")

@@ -31,7 +31,7 @@ def test_synthesis_is_the_inverse_of_acquisition_spectrum() -> None:
     x = (rng.standard_normal((bins.size, 3, 2)) + 1j * rng.standard_normal((bins.size, 3, 2))) * 1e-7
     rf = win.synthesize(x.astype(np.complex64), bins)
     acq = Acquisition(rf, win.fs, win.t0, 1500.0, probe, seq)
-    spec = acq.spectrum(win.freqs()[bins[0]] - 1.0, win.freqs()[bins[-1]] + 1.0)
+    spec = acq.spectrum(win.freqs()[bins[0]] - 1.0, win.freqs()[bins[-1]] + 1.0, pad=1)
     np.testing.assert_allclose(spec.data, x, rtol=2e-4, atol=2e-4 * np.abs(x).max())
     np.testing.assert_allclose(win.analyse(rf, bins), x, rtol=2e-4,
                                atol=2e-4 * np.abs(x).max())
