@@ -225,6 +225,9 @@ def headline(quick: bool, frames: list[int]) -> None:
             print(f"  frame {i:2d} {tg['name']}: γ peak {np.linalg.norm(rp - r) * 1e3:4.2f} mm from truth, "
                   f"C_γ = {cg:5.2f}, C = (γ/γ_M)² = {cp:6.1f}, PFA(L ≈ {n_grains:.0f}) = {pfa(cp, n_grains):.1e} | "
                   f"confocal: centre {c_centre:4.2f}, cap {c_cap:4.2f} (vs same-depth fog)")
+            fp = fps[tg["name"]]
+            print(f"           gain: G ≈ N_S·N_T = {fp.n_s * fp.n_t:5.0f} (paper eq. G) vs measured C_γ/C_I = "
+                  f"{cg / c_centre:5.1f} (C_I at the centre), {cg / c_cap:4.1f} (C_I at the cap)")
 
 
 def lesion() -> None:
