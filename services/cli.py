@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .characterise import add_characterise_parser
 from .locate import add_locate_parser, run_locate
 from .simulate_cmd import add_simulate_parser
 
@@ -124,6 +125,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_locate_parser(sub)
     sub.choices["locate"].set_defaults(func=run_locate)
     add_simulate_parser(sub)
+    add_characterise_parser(sub)
     return ap
 
 
