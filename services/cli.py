@@ -19,6 +19,9 @@ import numpy as np
 
 from .characterise import add_characterise_parser
 from .locate import add_locate_parser, run_locate
+from .processor import add_process_parser
+from .publisher import add_publish_parser
+from .recorder import add_record_parser, add_recover_parser
 from .simulate_cmd import add_simulate_parser
 
 __all__ = ["main"]
@@ -126,6 +129,11 @@ def build_parser() -> argparse.ArgumentParser:
     sub.choices["locate"].set_defaults(func=run_locate)
     add_simulate_parser(sub)
     add_characterise_parser(sub)
+    # Streaming nodes (issue 4): each registers its subcommand and handler (DESIGN §2, §7).
+    add_publish_parser(sub)
+    add_process_parser(sub)
+    add_record_parser(sub)
+    add_recover_parser(sub)
     return ap
 
 
