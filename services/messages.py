@@ -338,6 +338,7 @@ class Track(_Model):
     """One track. ``covariance`` is the 3×3 position covariance (m²), symmetric."""
 
     id: int = Field(ge=0)
+    fingerprint: str = Field(default="", description="Name of the fingerprint whose γ-map the track follows.")
     position_m: Vec3
     velocity_m_s: Vec3
     covariance: tuple[Vec3, Vec3, Vec3]

@@ -668,7 +668,7 @@ class Processor:
                 for tr in self._tracker.update(gammas, acq.timestamp):
                     c = np.asarray(tr.covariance_m2, float)
                     c = 0.5 * (c + c.T)
-                    tracks.append(Track(id=tr.track_id, position_m=tuple(tr.position_m),
+                    tracks.append(Track(id=tr.track_id, fingerprint=tr.fingerprint, position_m=tuple(tr.position_m),
                                         velocity_m_s=tuple(tr.velocity_m_s),
                                         covariance=tuple(tuple(row) for row in c.tolist()),
                                         confidence=float(np.clip(tr.confidence, 0.0, 1.0)), age=tr.age))
@@ -797,7 +797,8 @@ def add_process_parser(sub: argparse._SubParsersAction) -> None:
     src.add_argument("--full", action="store_true", help="full-size scenario (default: quick)")
     img = p.add_argument_group("imaging")
     img.add_argument("--band", help="band f_min:f_max, e.g. 1.8MHz:2.6MHz (default: truth band or probe band)")
-    img.add_argument("--n-freq", type=int, default=40, help="frequencies kept in the band (default 40)")
+    img.add_argument("--n-freq", type=int, default=None,
+                     help="frequencies kept in the band; sets the delay window (default: every bin, 2× padded)")
     img.add_argument("--x", dest="x_range", help="lateral range, e.g. -8mm:8mm (default: the aperture)")
     img.add_argument("--y", dest="y_range", help="elevation range (3D) (default: the aperture)")
     img.add_argument("--z", dest="z_range", help="depth range, e.g. 10mm:40mm (default: the record's window)")
