@@ -26,6 +26,7 @@ amplitude (e^{-i2πft} spectra, outgoing e^{-ikr}; see `waves`), as complex64 (N
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -69,62 +70,60 @@ def _hat_in(sines: np.ndarray) -> np.ndarray:
 
 
 @dataclass
-class ElasticSphere:
-    """Elastic sphere of `diameter` (m) in a fluid (ρ0, c0 at evaluation) — Faran series (3D)."""
+class _PartialWaveTarget(ABC):
+    """Shared Faran-series machinery: cached series weights per (frequencies, c0) and the transfer."""
 
     diameter: float
     material: Elastic = PAPER_SPHERE_MATERIAL
     rho0: float = 1000.0
-    name: str = "sphere"
+    name: str = "target"
     dim: int = 3
     chunk: int = 64
     _cache: dict = field(default_factory=dict, init=False, repr=False)
 
+    @abstractmethod
+    def _weights(self, ka: np.ndarray, n: np.ndarray, c0: float) -> np.ndarray:
+        """Series weights for ka (N_f, 1) and orders n (N_n,) — the sphere's or the cylinder's."""
+
     def coefficients(self, freqs: np.ndarray, c0: float) -> np.ndarray:
-        """(2n+1)(−i)^n conj(A_n), shape (N_f, N_n) — the e^{-i2πft} series weights."""
+        """Series weights, shape (N_f, N_n), cached per (frequencies, c0)."""
         key = (np.asarray(freqs).tobytes(), float(c0))
         if key not in self._cache:
-            a = 0.5 * self.diameter
-            ka = 2 * np.pi * np.asarray(freqs, dtype=np.float64) * a / c0
+            ka = 2 * np.pi * np.asarray(freqs, dtype=np.float64) * (0.5 * self.diameter) / c0
             n = np.arange(n_terms(ka.max()) + 1)
-            coef = sphere_coefficients(ka[:, None], n[None, :], self.material, self.rho0, c0)
-            self._cache[key] = np.conj(coef) * ((2 * n + 1) * (-1j) ** n)[None, :]
+            self._cache[key] = self._weights(ka[:, None], n, c0)
         return self._cache[key]
 
     def transfer(self, elements: np.ndarray, sines: np.ndarray, freqs: np.ndarray, c0: float,
                  position: np.ndarray) -> np.ndarray:
         return _series_transfer(self.coefficients(freqs, c0), elements, sines, freqs, c0,
-                                np.asarray(position, dtype=np.float64), 3, self.chunk)
+                                np.asarray(position, dtype=np.float64), self.dim, self.chunk)
 
 
 @dataclass
-class ElasticCylinder:
+class ElasticSphere(_PartialWaveTarget):
+    """Elastic sphere of `diameter` (m) in a fluid (ρ0, c0 at evaluation) — Faran series (3D)."""
+
+    name: str = "sphere"
+    dim: int = 3
+
+    def _weights(self, ka: np.ndarray, n: np.ndarray, c0: float) -> np.ndarray:
+        """(2n+1)(−i)^n conj(A_n) — the e^{-i2πft} series weights."""
+        coef = sphere_coefficients(ka, n[None, :], self.material, self.rho0, c0)
+        return np.conj(coef) * ((2 * n + 1) * (-1j) ** n)[None, :]
+
+
+@dataclass
+class ElasticCylinder(_PartialWaveTarget):
     """Infinite elastic (or fluid, c_t = 0) cylinder along y of `diameter` (m) — Faran series (2D)."""
 
-    diameter: float
-    material: Elastic = PAPER_SPHERE_MATERIAL
-    rho0: float = 1000.0
     name: str = "cylinder"
     dim: int = 2
-    chunk: int = 64
-    _cache: dict = field(default_factory=dict, init=False, repr=False)
 
-    def coefficients(self, freqs: np.ndarray, c0: float) -> np.ndarray:
-        """ε_n (−i)^n conj(A_n), shape (N_f, N_n)."""
-        key = (np.asarray(freqs).tobytes(), float(c0))
-        if key not in self._cache:
-            a = 0.5 * self.diameter
-            ka = 2 * np.pi * np.asarray(freqs, dtype=np.float64) * a / c0
-            n = np.arange(n_terms(ka.max()) + 1)
-            coef = cylinder_coefficients(ka[:, None], n[None, :], self.material, self.rho0, c0)
-            eps = np.where(n == 0, 1.0, 2.0)
-            self._cache[key] = np.conj(coef) * (eps * (-1j) ** n)[None, :]
-        return self._cache[key]
-
-    def transfer(self, elements: np.ndarray, sines: np.ndarray, freqs: np.ndarray, c0: float,
-                 position: np.ndarray) -> np.ndarray:
-        return _series_transfer(self.coefficients(freqs, c0), elements, sines, freqs, c0,
-                                np.asarray(position, dtype=np.float64), 2, self.chunk)
+    def _weights(self, ka: np.ndarray, n: np.ndarray, c0: float) -> np.ndarray:
+        """ε_n (−i)^n conj(A_n), ε_0 = 1, ε_n = 2."""
+        coef = cylinder_coefficients(ka, n[None, :], self.material, self.rho0, c0)
+        return np.conj(coef) * (np.where(n == 0, 1.0, 2.0) * (-1j) ** n)[None, :]
 
 
 def _series_transfer(coef: np.ndarray, elements: np.ndarray, sines: np.ndarray, freqs: np.ndarray,
