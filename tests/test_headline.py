@@ -19,11 +19,7 @@ def setup():
     sc = scenario("sinking-sphere", quick=True, seed=0)
     grid = fpcore.Grid.regular((-11e-3, 11e-3), (20e-3, 31e-3), 0.25e-3, y_range=(-5e-3, 5e-3))
     imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
-    fps = {}
-    for name in sc.target_names:
-        cal = sc.calibration(name)
-        fps[name] = fpcore.from_calibration(cal, np.array(cal.truth["r0_m"]), imager.out_sines_for(cal), sc.band,
-                                            None, diameter=cal.truth["diameter_m"], name=name)
+    fps = sc.fingerprints(fpcore.output_sines(sc.probe, sc.c0, sc.band[1]))
     return sc, grid, imager, fps
 
 

@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from ..acquisition import Acquisition, PlaneWaveSequence, Probe
+from ..fingerprint import Fingerprint, from_calibration
 from .medium import DiffuseBackground, ScatteringLayer
 from .targets import ElasticSphere, MirrorSegment, PointCluster, Target
 from .waves import Band, TimeWindow, radiate_points
@@ -242,6 +243,17 @@ class Scenario:
         """All frames in order (generator)."""
         for i in range(self.n_frames):
             yield self.frame(i)
+
+    def fingerprints(self, out_sines: np.ndarray, n_freq: int | None = None,
+                     svd_threshold: float = 0.4) -> dict[str, Fingerprint]:
+        """Each target's calibration fingerprint (fpcore.from_calibration, paper Methods) on this band,
+        gated at its front face (r0 and diameter from the calibration's truth)."""
+        out = {}
+        for name in self.target_names:
+            cal = self.calibration(name)
+            out[name] = from_calibration(cal, np.array(cal.truth["r0_m"]), out_sines, self.band, n_freq,
+                                         diameter=cal.truth["diameter_m"], svd_threshold=svd_threshold, name=name)
+        return out
 
     def calibration(self, target_name: str) -> Acquisition:
         """The target alone in water at its calibration position r0 (truth: r0_m, diameter_m)."""
