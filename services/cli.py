@@ -22,6 +22,7 @@ from .processor import add_process_parser
 from .publisher import add_publish_parser
 from .recorder import add_record_parser, add_recover_parser
 from .simulate_cmd import add_simulate_parser
+from .viewer import add_figure_parser, add_view_parser
 
 __all__ = ["main"]
 
@@ -123,6 +124,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_process_parser(sub)
     add_record_parser(sub)
     add_recover_parser(sub)
+    # Recordings to Rerun / PNG (issue 6).
+    add_view_parser(sub)
+    add_figure_parser(sub)
     return ap
 
 
