@@ -59,7 +59,7 @@ import zenoh
 from fpcore import Acquisition, Fingerprint, Grid, Imager, ImagingConfig, detect, from_calibration
 from fpcore.acquisition import PlaneWaveData
 from fpcore.fingerprint import mirror_fingerprint, point_fingerprint
-from fpcore.tracking import Tracker
+from fpcore.tracking import Tracker, TrackerConfig
 from services.bus import (
     FifoSlot,
     LatestSlot,
@@ -423,7 +423,9 @@ class Processor:
         self._geom = _geometry_key(acq)
         self._ref = acq
         lam = acq.c0 / acq.probe.centre_frequency
-        self._tracker = Tracker(grid, lam, acq.probe.aperture[0], band[1] - band[0], acq.c0) if cfg.track else None
+        # One track per fingerprint and expected target (cfg.n_peaks): a calibration describes one object.
+        self._tracker = (Tracker(grid, lam, acq.probe.aperture[0], band[1] - band[0], acq.c0,
+                                 TrackerConfig(max_tracks_per_map=max(1, cfg.n_peaks))) if cfg.track else None)
         pw = self._imager.plane_waves(acq)
         self._imager.kernel(pw)  # NUFFT plan (FFTW planning: seconds) before the first frame is timed
         for entry in self._entries.values():
