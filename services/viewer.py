@@ -12,7 +12,7 @@ and logs it to Rerun natively (Rerun shows custom MCAP encodings only as blobs),
 * ``series/<fingerprint>/{c_gamma,log10_pfa}`` and ``series/latency_ms/{median,p95}`` (``Scalars``).
 
 A default blueprint (sections, 3D view, time series) is stored in the ``.rrd``; open it with
-`rerun FILE.rrd`.
+`rerun FILE.rrd`. `fp view --live` logs the bus as it runs (`live_to_rrd`).
 
 `fp figure REC.mcap --frame N --png out.png`: ``services.figures.gamma_over_confocal`` of the first
 γ-map of frame N over that frame's confocal image, marker at its detection.
@@ -332,8 +332,81 @@ def make_sample_recording(path: str | Path, n_frames: int = 4, spacing: float = 
     return dict(kept)
 
 
+def live_to_rrd(bus: Any, rig: str, rrd: str | Path, *, duration: float | None = None,
+                stop: Any = None, threshold: float = 0.6, stats: dict[str, int] | None = None) -> dict[str, Any]:
+    """Subscribe to the processor's outputs on ``fp/<rig>/{gamma,image,detections,tracks,status}`` and
+    log them to a Rerun ``.rrd`` as they arrive (same entities and blueprint as `to_rrd`), until
+    `duration` seconds pass or `stop` (a threading.Event; default: SIGINT/SIGTERM) is set. Announces
+    itself with the liveliness token ``fp/<rig>/alive/viewer``. Raw RF frames are not subscribed.
+    `stats` (optional) is updated live with the counts of messages logged, undecodable and dropped."""
+    import queue
+    import time
+
+    import rerun as rr
+
+    from services.bus import open_session, sample_bytes, stop_on_signals
+    from services.wire import keys
+
+    rrd = Path(rrd)
+    rec = rr.RecordingStream("fingerprint", recording_id=f"live-{rig}")
+    rec.save(rrd)
+    rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_DOWN, static=True)
+    conv = _Converter(rec, threshold=threshold)
+    inbox: queue.Queue[bytes] = queue.Queue(maxsize=512)
+    stats = stats if stats is not None else {}
+    stats.update(messages=0, undecodable=0, dropped=0)
+    stop = stop if stop is not None else stop_on_signals()
+    k = keys(rig)
+
+    def on_sample(sample: Any) -> None:
+        try:
+            inbox.put_nowait(sample_bytes(sample))
+        except queue.Full:
+            stats["dropped"] += 1
+
+    def feed(payload: bytes) -> None:
+        try:
+            conv.feed(decode(payload))
+            stats["messages"] += 1
+        except WireError:
+            stats["undecodable"] += 1
+
+    with open_session(bus) as session:
+        subs = [session.declare_subscriber(key, on_sample) for key in (k.gamma, k.image, k.detections, k.tracks,
+                                                                       k.status)]
+        token = session.liveliness().declare_token(f"fp/{rig}/alive/viewer")
+        t_end = time.monotonic() + duration if duration else math.inf
+        try:
+            while not stop.is_set() and time.monotonic() < t_end:
+                try:
+                    feed(inbox.get(timeout=0.1))
+                except queue.Empty:
+                    continue
+        finally:
+            for sub in subs:
+                sub.undeclare()
+            token.undeclare()
+    while not inbox.empty():
+        feed(inbox.get_nowait())
+    conv.finish()
+    rec.send_blueprint(conv.blueprint(), make_active=True, make_default=True)
+    rec.flush()
+    rec.disconnect()
+    return {"rrd": str(rrd), **stats, "frames": sorted(conv.frame_indices), "fingerprints": list(conv.fingerprints)}
+
+
 def run_view(args: argparse.Namespace) -> int:
-    """`fp view`: convert a recording to ``.rrd``."""
+    """`fp view`: convert a recording to ``.rrd``, or log the live bus (``--live``) to one."""
+    if args.live:
+        from services.bus import bus_from_args
+
+        rrd = Path(args.rrd or f"live-{args.rig}.rrd")
+        out = live_to_rrd(bus_from_args(args), args.rig, rrd, duration=args.duration, threshold=args.threshold)
+        print(f"{out['rrd']}: {len(out['frames'])} frames, {out['messages']} messages "
+              f"({out['undecodable']} undecodable, {out['dropped']} dropped)")
+        return 0
+    if not args.recording:
+        raise ValueError("recording: give an MCAP file, or --live to follow the bus")
     rrd = Path(args.rrd) if args.rrd else Path(args.recording).with_suffix(".rrd")
     out = to_rrd(args.recording, rrd, threshold=args.threshold)
     print(f"{out['rrd']}: {len(out['frames'])} frames, {out['messages']} messages "
@@ -353,9 +426,15 @@ def add_view_parser(sub: Any) -> argparse.ArgumentParser:
     p = sub.add_parser("view", help="convert an MCAP recording to a Rerun .rrd",
                        description="Log a recording's γ-maps, confocal images, detections, tracks and time "
                                    "series to Rerun natively, with a default blueprint.")
-    p.add_argument("recording", help="MCAP file written by `fp record`/`fp demo`")
-    p.add_argument("--rrd", default=None, help="output .rrd (default: the recording with .rrd)")
+    p.add_argument("recording", nargs="?", help="MCAP file written by `fp record`/`fp demo`")
+    p.add_argument("--rrd", default=None, help="output .rrd (default: the recording with .rrd, or live-<rig>.rrd)")
+    p.add_argument("--live", action="store_true", help="follow the zenoh bus instead of a file (Ctrl-C stops)")
+    p.add_argument("--rig", default="demo", help="rig to follow with --live (default demo)")
+    p.add_argument("--duration", type=float, default=None, help="with --live: stop after this many seconds")
     p.add_argument("--threshold", type=float, default=0.6, help="show γ ≥ threshold·max (default 0.6)")
+    from services.bus import DEFAULT_HUB, EPHEMERAL, add_bus_arguments
+
+    add_bus_arguments(p, listen=EPHEMERAL, connect=DEFAULT_HUB)
     p.set_defaults(func=run_view)
     return p
 

@@ -81,3 +81,40 @@ def test_figure_png(tmp_path: Path) -> None:
 def test_figure_missing_frame(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="frame 999"):
         to_figure(SAMPLE, 999, tmp_path / "x.png")
+
+
+def test_live_view_logs_the_bus_to_rrd(tmp_path) -> None:
+    """`fp view --live`: messages put on fp/demo/* over loopback zenoh end up in the .rrd, per frame."""
+    import threading
+    import time
+
+    from services.bus import EPHEMERAL, BusConfig, free_port, open_session, wait_for_token
+    from services.recorder import iter_raw
+    from services.viewer import live_to_rrd
+
+    hub = f"tcp/127.0.0.1:{free_port()}"
+    stop = threading.Event()
+    out: dict = {}
+    live: dict = {}
+    rrd = tmp_path / "live.rrd"
+    with open_session(BusConfig(listen=[hub], connect=[], shm="off")) as session:
+        viewer = threading.Thread(target=lambda: out.update(live_to_rrd(
+            BusConfig(listen=[EPHEMERAL], connect=[hub], shm="off"), "demo", rrd, stop=stop, duration=60,
+            stats=live)))
+        viewer.start()
+        try:
+            assert wait_for_token(session, "fp/demo/alive/viewer", 20.0)
+            time.sleep(1.0)  # the viewer's subscriptions reach this session shortly after its token
+            n = 0
+            for _schema, channel, msg in iter_raw(SAMPLE):
+                session.put(channel.topic, bytes(msg.data))
+                n += 1
+            deadline = time.monotonic() + 20.0  # until the viewer has logged every message
+            while live.get("messages", 0) < n and time.monotonic() < deadline:
+                time.sleep(0.05)
+        finally:
+            stop.set()
+            viewer.join(30)
+    assert (out["messages"], out["undecodable"], out["dropped"]) == (n, 0, 0)
+    assert out["frames"] == [0, 1, 2, 3]
+    assert rrd.stat().st_size > 10_000
