@@ -184,6 +184,15 @@ class Acquisition:
     def times(self) -> np.ndarray:
         return self.t0 + np.arange(self.n_samples) / self.fs
 
+    def default_band(self) -> tuple[float, float]:
+        """The band to image: the truth's ``band_hz`` if the frame carries one (simulated frames), else
+        the probe's −6 dB band [f_c − B/2, f_c + B/2] clipped to [0, fs/2]."""
+        band = self.truth.get("band_hz") if isinstance(self.truth, dict) else None
+        if isinstance(band, (list, tuple)) and len(band) == 2:
+            return float(band[0]), float(band[1])
+        fc, bw = self.probe.centre_frequency, self.probe.bandwidth
+        return max(fc - bw / 2, 0.0), min(fc + bw / 2, self.fs / 2)
+
     def spectrum(self, f_min: float, f_max: float, n_freq: int | None = None, pad: int = 2) -> Spectrum:
         """Band [f_min, f_max] of R(f) = ∫ R(t) e^{-i2πft} dt (paper eq. 0, DESIGN §4.1).
 

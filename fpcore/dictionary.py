@@ -192,10 +192,10 @@ class Dictionary:
 
 @dataclass
 class _FFTCorrelator:
-    """B on a padded grid (demodulated by K_c in depth), its FFT, and the per-state window."""
+    """The NUFFT of B on a padded grid (demodulated by K_c in depth), the window T(κ) and the true
+    wavevectors of the DFT grid and of the samples at which the states' responses are evaluated."""
 
-    spectrum: np.ndarray
-    kappa: list[np.ndarray]
+    kernel: GridTransform
     taper: np.ndarray
     crop: tuple[slice, ...]
     K3_of_kappa: np.ndarray
@@ -242,13 +242,11 @@ class _FFTCorrelator:
             K3k = np.stack([k.ravel() for k in k_true], axis=1)
             Ks3 = K
         crop = tuple(slice(o, o + n) for o, n in zip(offs, grid.shape, strict=True))
-        obj = cls(np.empty(0), kappa, taper.astype(np.float32), crop, K3k.astype(np.float32), family, shape_ext,
-                  Ks3.astype(np.float32))
-        obj._kern = kern  # type: ignore[attr-defined]
-        return obj
+        return cls(kern, taper.astype(np.float32), crop, K3k.astype(np.float32), family, shape_ext,
+                   Ks3.astype(np.float32))
 
     def maps(self, r: np.ndarray, r_norm: float, batch: int) -> Iterator[tuple[int, np.ndarray]]:
-        field_ext = self._kern(r)  # type: ignore[attr-defined]
+        field_ext = self.kernel(r)
         axes = tuple(range(len(self.shape_ext)))
         spec = sfft.fftn(field_ext, axes=axes, workers=default_threads()).astype(np.complex64)
         spec *= self.taper

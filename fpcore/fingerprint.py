@@ -218,16 +218,11 @@ def from_calibration(acq: Acquisition, r0: np.ndarray, out_sines: np.ndarray, ba
                        n_s=float(np.mean(n_s_f)), singular_values=rel.astype(np.float32), n_t=float(n_t))
 
 
-def _model(freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, c0: float) -> tuple[np.ndarray, np.ndarray]:
-    K3 = wavevectors(freqs, out_sines, in_sines, c0, 3)
-    return K3, np.asarray(out_sines, float)
-
-
 def point_fingerprint(freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, c0: float,
                       r0: np.ndarray = (0.0, 0.0, 0.0), name: str = "point") -> Fingerprint:
     """Point reflector at r0: F = e^{-iK·r0} (Γ = δ(r − r0); paper, Methods "Numerical computation")."""
     r0 = np.asarray(r0, dtype=float)
-    K3, _ = _model(freqs, out_sines, in_sines, c0)
+    K3 = wavevectors(freqs, out_sines, in_sines, c0, 3)
     data = np.exp(-1j * (K3 @ r0)).reshape(len(freqs), len(out_sines), len(in_sines))
     return Fingerprint(data.astype(np.complex64), np.asarray(freqs, float), np.asarray(out_sines, float),
                        np.asarray(in_sines, float), c0, r0, name=name, provenance="model:point")
@@ -262,7 +257,7 @@ def mirror_fingerprint(freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.nd
     Closed form of P Γ Pᵀ for Γ on a segment (DESIGN §4.5): F = L sinc(K·t̂ L/2π) e^{-iK·r0}.
     """
     r0 = np.asarray(r0, dtype=float)
-    K3, _ = _model(freqs, out_sines, in_sines, c0)
+    K3 = wavevectors(freqs, out_sines, in_sines, c0, 3)
     data = mirror_response(K3, length, alpha, azimuth) * np.exp(-1j * (K3 @ r0))
     return Fingerprint(data.reshape(len(freqs), len(out_sines), len(in_sines)).astype(np.complex64),
                        np.asarray(freqs, float), np.asarray(out_sines, float), np.asarray(in_sines, float),

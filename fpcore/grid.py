@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from .acquisition import Acquisition
 
 __all__ = ["Grid"]
 
@@ -55,6 +59,28 @@ class Grid:
         if len(shape) == 3:
             return cls(axes[0], axes[2], axes[1])
         raise ValueError(f"shape: expected 2 or 3 dimensions, got {shape}")
+
+    @classmethod
+    def for_acquisition(cls, acq: Acquisition, band: tuple[float, float],
+                        x_range: tuple[float, float] | None = None, y_range: tuple[float, float] | None = None,
+                        z_range: tuple[float, float] | None = None, spacing: float | None = None) -> Grid:
+        """Default imaging grid of an acquisition (DESIGN §3), each part overridable.
+
+        Depths: the record's time window, z = c0 t/2 (from 2λ). Lateral: the aperture widened by the
+        transmit fan at the deepest point (z s/c), at most twice the aperture. Spacing: λ_min/3 (2D) or
+        λ_min/2 (3D), λ_min = c0/f_max.
+        """
+        lam = acq.c0 / band[1]
+        step = spacing or lam / (3 if acq.probe.is_linear else 2)
+        t = acq.times
+        z = z_range or (max(acq.c0 * t[0] / 2, 2 * lam), acq.c0 * t[-1] / 2)
+        s = np.abs(acq.sequence.sines).max(axis=0)
+        fan = z[1] * s / np.sqrt(1 - s ** 2)
+        half = [min(a / 2 + f, a) for a, f in zip(acq.probe.aperture, fan, strict=True)]
+        x = x_range or (-half[0], half[0])
+        if acq.probe.is_linear:
+            return cls.regular(x, z, step)
+        return cls.regular(x, z, step, y_range=y_range or (-half[1], half[1]))
 
     @property
     def ndim(self) -> int:

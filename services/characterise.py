@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .locate import default_grid
+from .imaging_args import grid_ranges
 from .units import UnitError, parse_band, parse_length
 
 __all__ = ["add_characterise_parser", "run_characterise"]
@@ -72,7 +72,7 @@ def run_characterise(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import Progress
 
-    from fpcore import Imager, ImagingConfig
+    from fpcore import Grid, Imager, ImagingConfig
     from fpcore.dictionary import Dictionary, mirror_family
     from fpcore.io import read_uff
 
@@ -81,9 +81,8 @@ def run_characterise(args: argparse.Namespace) -> int:
     acq = read_uff(args.data, args.dataset, frames=[args.frame])[0]
     if not acq.probe.is_linear:
         raise ValueError("probe: fp characterise maps 2D (x–z) images; a linear array is expected")
-    fc, bw = acq.probe.centre_frequency, acq.probe.bandwidth
-    band = parse_band(args.band) if args.band else (max(fc - bw / 2, 0.0), min(fc + bw / 2, acq.fs / 2))
-    grid = default_grid(acq, band, args)
+    band = parse_band(args.band) if args.band else acq.default_band()
+    grid = Grid.for_acquisition(acq, band, **grid_ranges(args))
     imager = Imager(ImagingConfig(grid, band, args.n_freq))
     pw = imager.plane_waves(acq)
     dic = Dictionary(family=mirror_family(lengths, alphas))

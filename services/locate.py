@@ -15,19 +15,17 @@ import numpy as np
 
 from fpcore import (
     Acquisition,
-    Fingerprint,
     Grid,
     Imager,
     ImagingConfig,
     detect,
     from_calibration,
-    mirror_fingerprint,
-    point_fingerprint,
 )
 
-from .units import parse_band, parse_length, parse_position, parse_range
+from .imaging_args import add_imaging_arguments, build_model, grid_ranges
+from .units import parse_band, parse_length, parse_position
 
-__all__ = ["add_locate_parser", "run_locate", "default_grid", "check_calibration"]
+__all__ = ["add_locate_parser", "run_locate", "check_calibration"]
 
 
 def add_locate_parser(sub: argparse._SubParsersAction) -> None:
@@ -41,40 +39,10 @@ def add_locate_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--r0", help="calibration target position X,Z[,Y] (default: from the calibration's truth)")
     p.add_argument("--diameter", help="target size for the time gate, e.g. 10mm (default: from the truth, else 0)")
     p.add_argument("--dataset", help="dataset name inside the UFF file(s) when there are several")
-    p.add_argument("--band", help="frequency band f_min:f_max, e.g. 1.8MHz:2.6MHz (default: probe's -6 dB band)")
-    p.add_argument("--n-freq", type=int, default=None,
-                   help="frequencies kept in the band; it sets the delay window (n−1)/bandwidth, so keep "
-                        "it ≥ bandwidth × record length (default: every bin of the 2× zero-padded record)")
-    p.add_argument("--x", dest="x_range", help="lateral range of the grid, e.g. --x=-8mm:8mm "
-                   "(default: the transmit fan over the aperture)")
-    p.add_argument("--y", dest="y_range", help="elevation range (3D), e.g. --y=-8mm:8mm (default: as --x)")
-    p.add_argument("--z", dest="z_range", help="depth range, e.g. 10mm:40mm (default: the record's time window)")
-    p.add_argument("--spacing", help="grid spacing (default λ_min/3 in 2D, λ_min/2 in 3D)")
-    p.add_argument("--n-out", type=int, help="output directions per lateral axis (default: elements per axis)")
-    p.add_argument("--svd-threshold", type=float, default=0.4, help="kept singular values σ_p ≥ t σ_1 (default 0.4)")
-    p.add_argument("--targets", type=int, default=1, help="peaks reported per frame (default 1)")
+    add_imaging_arguments(p)
     p.add_argument("--json", help="write the results as JSON (SI units)")
     p.add_argument("--png", help="write a PNG of γ over the confocal image (last frame)")
     p.add_argument("--frames", help="frame indices to process, e.g. 0:10 (default: all)")
-
-
-def default_grid(acq: Acquisition, band: tuple[float, float], args: argparse.Namespace) -> Grid:
-    """Grid over the aperture and the depths the record covers (z = c0 t/2), or the user's ranges."""
-    lam = acq.c0 / band[1]
-    spacing = parse_length(args.spacing, "--spacing") if args.spacing else lam / (3 if acq.probe.is_linear else 2)
-    ax, ay = acq.probe.aperture
-    t = acq.times
-    z_lo = max(acq.c0 * t[0] / 2, 2 * lam)
-    z = parse_range(args.z_range, "--z") if args.z_range else (z_lo, acq.c0 * t[-1] / 2)
-    # Lateral default: the aperture widened by the transmit fan at the deepest point (≤ 2× aperture).
-    s = np.abs(acq.sequence.sines).max(axis=0)
-    fan = z[1] * s / np.sqrt(1 - s ** 2)
-    half = [min(a / 2 + f, a) for a, f in zip((ax, ay), fan, strict=True)]
-    x = parse_range(args.x_range, "--x") if args.x_range else (-half[0], half[0])
-    if acq.probe.is_linear:
-        return Grid.regular(x, z, spacing)
-    y = parse_range(args.y_range, "--y") if args.y_range else (-half[1], half[1])
-    return Grid.regular(x, z, spacing, y_range=y)
 
 
 def check_calibration(cal: Acquisition, data: Acquisition) -> None:
@@ -107,19 +75,6 @@ def _r0(args: argparse.Namespace, cal: Acquisition) -> tuple[np.ndarray, float]:
     return r0, d
 
 
-def _model(spec: str, freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, c0: float) -> Fingerprint:
-    kind, _, rest = spec.partition(":")
-    if kind == "point":
-        return point_fingerprint(freqs, out_sines, in_sines, c0)
-    if kind == "mirror":
-        params = dict(kv.split("=", 1) for kv in rest.split(",") if "=" in kv)
-        if "L" not in params:
-            raise ValueError("--model: mirror needs L, e.g. mirror:L=2mm,alpha=10")
-        return mirror_fingerprint(freqs, out_sines, in_sines, c0, parse_length(params["L"], "--model L"),
-                                  np.deg2rad(float(params.get("alpha", 0.0))), name="mirror")
-    raise ValueError(f"--model: unknown model {kind!r} (expected 'point' or 'mirror:L=…,alpha=…')")
-
-
 def run_locate(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import Progress
@@ -136,9 +91,9 @@ def run_locate(args: argparse.Namespace) -> int:
         sel = slice(int(a or 0), int(b) if b else None) if ":" in args.frames else [int(a)]
     frames = read_uff(args.data, args.dataset, frames=sel)
     first = frames[0]
-    fc, bw = first.probe.centre_frequency, first.probe.bandwidth
-    band = parse_band(args.band) if args.band else (max(fc - bw / 2, 0.0), min(fc + bw / 2, first.fs / 2))
-    grid = default_grid(first, band, args)
+    fc = first.probe.centre_frequency
+    band = parse_band(args.band) if args.band else first.default_band()
+    grid = Grid.for_acquisition(first, band, **grid_ranges(args))
     out_sines = None
     if args.n_out:
         from fpcore import output_sines
@@ -154,7 +109,7 @@ def run_locate(args: argparse.Namespace) -> int:
                       f"N_T = {fp.n_t:.1f}, G ≈ {fp.n_s * fp.n_t:.0f}")
     else:
         pw0 = imager.plane_waves(first)
-        fp = _model(args.model, pw0.freqs, pw0.out_sines, pw0.in_sines, first.c0)
+        fp = build_model(args.model, pw0)
     console.print(f"{len(frames)} frame(s), band {band[0] / 1e6:.2f}–{band[1] / 1e6:.2f} MHz, grid {grid.shape}")
     lam = first.c0 / fc
     results = []

@@ -58,7 +58,6 @@ import zenoh
 
 from fpcore import Acquisition, Fingerprint, Grid, Imager, ImagingConfig, detect, from_calibration
 from fpcore.acquisition import PlaneWaveData
-from fpcore.fingerprint import mirror_fingerprint, point_fingerprint
 from fpcore.tracking import Tracker, TrackerConfig
 from services.bus import (
     FifoSlot,
@@ -72,6 +71,7 @@ from services.bus import (
     tune_malloc,
     wait_until,
 )
+from services.imaging_args import add_imaging_arguments, build_model, grid_ranges
 from services.messages import (
     ConfocalImage,
     Detection,
@@ -87,7 +87,7 @@ from services.messages import (
 )
 from services.messages import Grid as WireGrid
 from services.sources import FingerprintSpec
-from services.units import parse_band, parse_length, parse_position, parse_range
+from services.units import parse_band, parse_length, parse_position
 from services.wire import DEFAULT_MAX_BYTES, MAGIC, WireError, decode, error_report, keys
 
 __all__ = [
@@ -204,43 +204,6 @@ def _finite(v: float, cap: float = 1e300) -> float:
 def _geometry_key(acq: Acquisition) -> tuple:
     return (acq.probe.positions.tobytes(), acq.sequence.sines.tobytes(), float(acq.fs), acq.n_samples,
             float(acq.c0))
-
-
-def default_band(acq: Acquisition) -> tuple[float, float]:
-    """Band of the frame's truth (``band_hz``) if any, else the probe's −6 dB band within [0, fs/2]."""
-    band = acq.truth.get("band_hz") if isinstance(acq.truth, dict) else None
-    if isinstance(band, (list, tuple)) and len(band) == 2:
-        return float(band[0]), float(band[1])
-    fc, bw = acq.probe.centre_frequency, acq.probe.bandwidth
-    return max(fc - bw / 2, 0.0), min(fc + bw / 2, acq.fs / 2)
-
-
-def default_grid(acq: Acquisition, band: tuple[float, float], cfg: ProcessorConfig) -> Grid:
-    """The aperture × the depths the record covers (z = c0 t/2), spacing λ_min/3 (2D) or λ_min/2 (3D),
-    unless the configuration gives ranges or a spacing (same defaults as ``fp locate``)."""
-    lam = acq.c0 / band[1]
-    spacing = cfg.spacing or lam / (3 if acq.probe.is_linear else 2)
-    ax, ay = acq.probe.aperture
-    t = acq.times
-    z = cfg.z_range or (max(acq.c0 * t[0] / 2, 2 * lam), acq.c0 * t[-1] / 2)
-    x = cfg.x_range or (-ax / 2, ax / 2)
-    if acq.probe.is_linear:
-        return Grid.regular(x, z, spacing)
-    return Grid.regular(x, z, spacing, y_range=cfg.y_range or (-ay / 2, ay / 2))
-
-
-def build_model(spec: str, pw: PlaneWaveData, r0: np.ndarray, name: str) -> Fingerprint:
-    """Numerical fingerprint from a spec: ``point`` or ``mirror:L=2mm,alpha=10`` (alpha in degrees)."""
-    kind, _, rest = spec.partition(":")
-    if kind == "point":
-        return point_fingerprint(pw.freqs, pw.out_sines, pw.in_sines, pw.c0, r0, name=name)
-    if kind == "mirror":
-        params = dict(kv.split("=", 1) for kv in rest.split(",") if "=" in kv)
-        if "L" not in params:
-            raise ValueError("model: mirror needs L, e.g. mirror:L=2mm,alpha=10")
-        return mirror_fingerprint(pw.freqs, pw.out_sines, pw.in_sines, pw.c0, parse_length(params["L"], "model L"),
-                                  np.deg2rad(float(params.get("alpha", 0.0))), r0=r0, name=name)
-    raise ValueError(f"model: unknown model {kind!r} (expected 'point' or 'mirror:L=…,alpha=…')")
 
 
 def _truth_positions(truth: dict[str, Any] | None) -> list[tuple[str | None, np.ndarray]]:
@@ -412,8 +375,8 @@ class Processor:
         """Imager, tracker and every fingerprint for the geometry of ``acq`` (called under the lock)."""
         t0 = time.perf_counter()
         cfg = self.cfg
-        band = cfg.band or default_band(acq)
-        grid = cfg.grid or default_grid(acq, band, cfg)
+        band = cfg.band or acq.default_band()
+        grid = cfg.grid or Grid.for_acquisition(acq, band, cfg.x_range, cfg.y_range, cfg.z_range, cfg.spacing)
         out_sines = None
         if cfg.n_out:
             from fpcore import output_sines
@@ -798,16 +761,7 @@ def add_process_parser(sub: argparse._SubParsersAction) -> None:
     src.add_argument("--scenario", help="calibrations of a simulator scenario's targets (e.g. sinking-sphere)")
     src.add_argument("--full", action="store_true", help="full-size scenario (default: quick)")
     img = p.add_argument_group("imaging")
-    img.add_argument("--band", help="band f_min:f_max, e.g. 1.8MHz:2.6MHz (default: truth band or probe band)")
-    img.add_argument("--n-freq", type=int, default=None,
-                     help="frequencies kept in the band; sets the delay window (default: every bin, 2× padded)")
-    img.add_argument("--x", dest="x_range", help="lateral range, e.g. -8mm:8mm (default: the aperture)")
-    img.add_argument("--y", dest="y_range", help="elevation range (3D) (default: the aperture)")
-    img.add_argument("--z", dest="z_range", help="depth range, e.g. 10mm:40mm (default: the record's window)")
-    img.add_argument("--spacing", help="grid spacing (default λ_min/3 in 2D, λ_min/2 in 3D)")
-    img.add_argument("--n-out", type=int, help="output directions per lateral axis (default: elements per axis)")
-    img.add_argument("--svd-threshold", type=float, default=0.4, help="kept σ_p ≥ t σ_1 (default 0.4)")
-    img.add_argument("--targets", type=int, default=1, help="peaks reported per fingerprint (default 1)")
+    add_imaging_arguments(img, peaks_help="peaks reported per fingerprint")
     img.add_argument("--no-image", action="store_true", help="do not publish the confocal image")
     img.add_argument("--no-track", action="store_true", help="do not run the tracker")
     node = p.add_argument_group("node")
@@ -853,10 +807,7 @@ def config_from_args(args: argparse.Namespace) -> ProcessorConfig:
     return ProcessorConfig(
         rig=args.rig, name=args.name, queue=args.queue, fifo_depth=args.fifo_depth,
         band=parse_band(args.band) if args.band else None, n_freq=args.n_freq, svd_threshold=args.svd_threshold,
-        x_range=parse_range(args.x_range, "--x") if args.x_range else None,
-        y_range=parse_range(args.y_range, "--y") if args.y_range else None,
-        z_range=parse_range(args.z_range, "--z") if args.z_range else None,
-        spacing=parse_length(args.spacing, "--spacing") if args.spacing else None, n_out=args.n_out,
+        **grid_ranges(args), n_out=args.n_out,
         n_peaks=args.targets, max_frame_bytes=args.max_frame_bytes, publish_image=not args.no_image,
         track=not args.no_track, status_period=args.status_period)
 

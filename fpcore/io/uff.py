@@ -151,13 +151,7 @@ def read_uff_json(path: PathLike, key: str, dataset: str | None = None) -> Any:
     """Read back a value stored by :func:`write_uff_json` (None if the attribute is absent)."""
     with h5py.File(path, "r") as f:
         name = _choose_dataset(f, dataset)
-        raw = f[name].attrs.get(key)
-    if raw is None:
-        return None
-    try:
-        return json.loads(_text(raw))
-    except json.JSONDecodeError as exc:
-        raise UFFError(f"{name}.attrs[{key!r}]: expected a JSON string ({exc})") from exc
+        return _load_json_attr(f[name], key, name)
 
 
 # ----------------------------------------------------------------------------------------------
