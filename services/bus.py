@@ -64,6 +64,7 @@ __all__ = [
     "sample_publish_time",
     "stop_on_signals",
     "tune_malloc",
+    "wait_for_matching",
     "wait_for_token",
     "wait_until",
     "zenoh_config",
@@ -227,6 +228,17 @@ def wait_for_token(session: zenoh.Session, key: str, timeout: float) -> bool:
         if time.monotonic() >= deadline:
             return False
         time.sleep(0.1)
+
+
+def wait_for_matching(pub: zenoh.Publisher, timeout: float) -> bool:
+    """True once ``pub`` has a matching subscriber (polled until ``timeout`` seconds): a liveliness token
+    can reach a peer before the subscriptions declared with it, and a put before them is lost."""
+    deadline = time.monotonic() + timeout
+    while not pub.matching_status.matching:
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.02)
+    return True
 
 
 def stop_on_signals() -> threading.Event:

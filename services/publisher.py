@@ -50,6 +50,7 @@ from services.bus import (
     put_message,
     stop_on_signals,
     tune_malloc,
+    wait_for_matching,
     wait_for_token,
 )
 from services.messages import RFFrame
@@ -214,6 +215,8 @@ class Publisher:
                                            "(--pace ack needs one)")
                     log.warning("no %s seen on fp/%s after %.0f s; publishing anyway", node, self.rig,
                                 self.wait_timeout)
+            if self.wait_for and not wait_for_matching(rf_pub, self.wait_timeout):
+                log.warning("no subscriber to %s after %.0f s; publishing anyway", self.keys.rf, self.wait_timeout)
             t0_wall: float | None = None
             t0_src = 0.0
             for item in self.source:

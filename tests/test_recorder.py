@@ -16,7 +16,7 @@ import pytest
 import zenoh
 from mcap.reader import make_reader
 
-from services.bus import BusConfig, free_port, open_session, put_message, wait_for_token
+from services.bus import BusConfig, free_port, open_session, put_message, wait_for_matching, wait_for_token
 from services.cli import main
 from services.messages import Status, examples
 from services.recorder import Recorder, _Received, _Segment, iter_raw, recover
@@ -61,11 +61,11 @@ def test_kill9_recorder_then_recover_keeps_everything_flushed(tmp_path, capsys) 
             proc = _start_recorder(["--rig", rig, "-o", str(path), "--flush-interval", "0.5", "--connect",
                                     f"tcp/127.0.0.1:{port}"], tmp_path / "rec.log")
             assert wait_for_token(s, f"fp/{rig}/alive/recorder", 20)
-            time.sleep(0.3)
             k = keys(rig)
             block = zenoh.CongestionControl.BLOCK
             status_pub = s.declare_publisher(k.status, congestion_control=block)
             rf_pub = s.declare_publisher(k.rf, congestion_control=block)
+            assert wait_for_matching(status_pub, 20) and wait_for_matching(rf_pub, 20)
             t_end = time.time() + 3.0
             i = 0
             while time.time() < t_end:
@@ -106,8 +106,8 @@ def test_rotation_by_size_and_clean_close(tmp_path) -> None:
             open_session(BusConfig(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"])) as s:
         with Recorder(s_rec, tmp_path / "rot.mcap", rig=rig, flush_interval=0.1, max_bytes=12_000) as rec:
             assert wait_for_token(s, f"fp/{rig}/alive/recorder", 20)
-            time.sleep(0.3)
             pub = s.declare_publisher(keys(rig).rf, congestion_control=zenoh.CongestionControl.BLOCK)
+            assert wait_for_matching(pub, 20)
             for i in range(30):
                 msg = base.model_copy(update={"frame_index": i})
                 payloads.append(encode(msg))

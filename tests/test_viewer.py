@@ -88,7 +88,9 @@ def test_live_view_logs_the_bus_to_rrd(tmp_path) -> None:
     import threading
     import time
 
-    from services.bus import EPHEMERAL, BusConfig, free_port, open_session, wait_for_token
+    import zenoh
+
+    from services.bus import EPHEMERAL, BusConfig, free_port, open_session, wait_for_matching, wait_for_token
     from services.recorder import iter_raw
     from services.viewer import live_to_rrd
 
@@ -97,6 +99,7 @@ def test_live_view_logs_the_bus_to_rrd(tmp_path) -> None:
     out: dict = {}
     live: dict = {}
     rrd = tmp_path / "live.rrd"
+    pubs: dict[str, zenoh.Publisher] = {}
     with open_session(BusConfig(listen=[hub], connect=[], shm="off")) as session:
         viewer = threading.Thread(target=lambda: out.update(live_to_rrd(
             BusConfig(listen=[EPHEMERAL], connect=[hub], shm="off"), "demo", rrd, stop=stop, duration=60,
@@ -104,15 +107,22 @@ def test_live_view_logs_the_bus_to_rrd(tmp_path) -> None:
         viewer.start()
         try:
             assert wait_for_token(session, "fp/demo/alive/viewer", 20.0)
-            time.sleep(1.0)  # the viewer's subscriptions reach this session shortly after its token
+            # One blocking publisher per key, each matched before the first put: a plain session.put drops
+            # under load (congestion control DROP) and a put before the subscription arrives is lost.
             n = 0
             for _schema, channel, msg in iter_raw(SAMPLE):
-                session.put(channel.topic, bytes(msg.data))
+                if channel.topic not in pubs:
+                    pubs[channel.topic] = session.declare_publisher(
+                        channel.topic, congestion_control=zenoh.CongestionControl.BLOCK)
+                    assert wait_for_matching(pubs[channel.topic], 20.0), channel.topic
+                pubs[channel.topic].put(bytes(msg.data))
                 n += 1
             deadline = time.monotonic() + 20.0  # until the viewer has logged every message
             while live.get("messages", 0) < n and time.monotonic() < deadline:
                 time.sleep(0.05)
         finally:
+            for pub in pubs.values():
+                pub.undeclare()
             stop.set()
             viewer.join(30)
     assert (out["messages"], out["undecodable"], out["dropped"]) == (n, 0, 0)
