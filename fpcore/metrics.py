@@ -47,6 +47,13 @@ def _outside_mask(grid: Grid, centre: np.ndarray, radius: float) -> np.ndarray:
     return d2 > radius ** 2
 
 
+def _near_border(grid: Grid, pos: np.ndarray, margin: float) -> bool:
+    """True when `pos` (x, y, z) lies within `margin` of the grid's border on an axis it spans."""
+    coords = (pos[0], pos[2]) if grid.ndim == 2 else (pos[0], pos[1], pos[2])
+    return any(a.size > 2 and (c - a[0] < margin or a[-1] - c < margin)
+               for a, c in zip(grid.axes, coords, strict=True))
+
+
 def contrasts(gamma: np.ndarray, grid: Grid, target: np.ndarray, exclusion_radius: float,
               value: float | None = None) -> tuple[float, float]:
     """(C_γ, C) for the target at position `target` (metres): C_γ = γ_t/mean(γ_out), C = (γ_t/γ_M)².
@@ -125,29 +132,34 @@ class Detection:
 
 def detect(gamma: np.ndarray, grid: Grid, wavelength: float, aperture: float, bandwidth: float, c0: float,
            name: str = "target", exclusion_radius: float | None = None, n_peaks: int = 1,
-           n_grains: float | None = None) -> list[Detection]:
+           n_grains: float | None = None, interior: bool = False) -> list[Detection]:
     """The n_peaks strongest maxima of a γ-map with contrasts, PFA and Cramér–Rao precision.
 
     Peaks are separated by exclusion_radius (default 2 δρ_D at the peak depth); each contrast is
-    taken against the map outside every accepted peak's exclusion ball.
+    taken against the map outside every accepted peak's exclusion ball. ``interior=True`` skips maxima
+    closer than δρ_D to the grid's border (with their exclusion ball): such a maximum is, most often,
+    the flank of something outside the region of interest — e.g. γ rising towards a scattering layer's
+    surface — not a peak inside it.
     """
     g = np.asarray(gamma, dtype=np.float32)
     work = g.copy()
     found: list[tuple[tuple[int, ...], np.ndarray, float, float]] = []
     axial_res = c0 / (2 * bandwidth)
-    for _ in range(n_peaks):
+    while len(found) < n_peaks:
         idx = np.unravel_index(int(np.argmax(work)), work.shape)
         if not np.isfinite(work[idx]) or work[idx] <= 0:
             break
         pos, val = refine_peak(g, grid, idx)
         res = diffraction_resolution(wavelength, aperture, max(pos[2], wavelength))
         rad = exclusion_radius if exclusion_radius is not None else 2 * res
-        found.append((idx, pos, val, rad))
         work[~_outside_mask(grid, pos, rad)] = -np.inf
+        if interior and _near_border(grid, pos, res):
+            continue
+        found.append((idx, pos, val, rad))
     if not found:
         return []
     outside = np.ones(g.shape, dtype=bool)
-    for _, pos, _, rad in found:
+    for _, pos, _, rad in found:  # skipped border maxima stay in the background: they are fog
         outside &= _outside_mask(grid, pos, rad)
     g_out = g[outside] if outside.any() else g.ravel()
     mean = float(g_out.mean())

@@ -14,15 +14,24 @@ while the target's γ stays high near its last position. The tracker therefore:
   carries no carrier phase, so the paper's λ-based axial bound is not reached by this estimator),
   floored at the grid's quantisation variance spacing²/12;
 * assigns candidates to tracks by `scipy.optimize.linear_sum_assignment` on Mahalanobis distances,
-  starts a track from an unassigned peak whose field-of-view PFA is below `p_birth`, confirms it after
+  starts a track from an unassigned interior peak (maxima on the grid's border are the flanks of
+  something outside the region of interest, e.g. γ rising under a suspension's surface; `birth_interior`)
+  whose field-of-view PFA is below `p_birth`, confirms it after
   `confirm_hits` hits and drops it after `max_misses` consecutive misses;
-* reports confidence = 1 − PFA of the last accepted measurement, decayed by misses.
+* reports confidence = 1 − PFA of the last accepted measurement, decayed by misses;
+* optionally (`integrate_frames` = K > 1) searches the mean of the last K γ-maps: the fog decorrelates
+  from frame to frame (DESIGN §6, the suspension's frame-to-frame decorrelation) while a target's γ
+  persists, so fog peaks fall by up to √K against it. The mean's peak sits at the target's mean position
+  over the window, i.e. it lags by v(K − 1)Δt/2: use K > 1 for slow targets only (moving it forward by
+  the track's own velocity estimate feeds back into that estimate and was found unstable). The noise of
+  a measurement keeps the current frame's C_γ (the windows overlap, their errors are correlated).
 
 Tracks follow one fingerprint each (the γ-map they live on); several tracks may share a fingerprint.
 """
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -39,7 +48,7 @@ __all__ = ["TrackerConfig", "TrackState", "Tracker"]
 class TrackerConfig:
     """Tracker settings (SI units)."""
 
-    accel_noise: float = 0.05  # m/s², white-acceleration spectral level of the CV model
+    accel_noise: float = 5e-3  # m/s², white-acceleration level of the CV model (0.5 mm/s per frame at 10 Hz)
     gate_sigma: float = 4.0  # gate radius in standard deviations of the innovation
     min_gate: float | None = None  # m; default 2 δρ_D
     p_keep: float = 1e-2  # gated PFA below which a measurement is accepted
@@ -49,6 +58,8 @@ class TrackerConfig:
     max_tracks_per_map: int = 2
     default_dt: float = 0.1  # s, when frames carry no distinct timestamps
     initial_speed_sigma: float = 5e-3  # m/s, prior on a new track's speed
+    birth_interior: bool = True  # births only from maxima off the grid's border (see module doc)
+    integrate_frames: int = 1  # K: search the mean of the last K γ-maps (see module doc)
 
 
 @dataclass
@@ -66,6 +77,8 @@ class TrackState:
     measured: bool
     gamma: float
     pfa: float
+    c_gamma: float  # contrast of the last accepted measurement (0 before any)
+    precision_m: list[float]  # Cramér–Rao σ of the last accepted measurement per axis (x, y, z), m
 
 
 @dataclass
@@ -80,6 +93,8 @@ class _Track:
     last_pfa: float = 1.0
     gamma: float = 0.0
     measured: bool = True
+    c_gamma: float = 0.0
+    precision: np.ndarray | None = None
     history: list[np.ndarray] = field(default_factory=list)
 
     @property
@@ -102,6 +117,9 @@ class Tracker:
         self._next_id = 1
         self._last_time: float | None = None
         self._mesh = np.meshgrid(*grid.axes, indexing="ij")
+        self._recent: dict[str, deque[np.ndarray]] = {}
+        if self.config.integrate_frames < 1:
+            raise ValueError(f"integrate_frames: expected an integer ≥ 1, got {self.config.integrate_frames}")
         self.nd = grid.ndim
 
     # --- geometry helpers -------------------------------------------------------------------
@@ -110,6 +128,18 @@ class Tracker:
 
     def _r3(self, c: np.ndarray) -> np.ndarray:
         return np.array([c[0], 0.0, c[1]]) if self.nd == 2 else np.asarray(c, float)
+
+    def _near_border(self, c: np.ndarray, margin: float) -> bool:
+        return any(a.size > 2 and (v - a[0] < margin or a[-1] - v < margin)
+                   for a, v in zip(self.grid.axes, c, strict=True))
+
+    def _border_band(self, margin: float) -> np.ndarray:
+        """Nodes closer than `margin` to the border of the grid (on axes with more than 2 nodes)."""
+        band = np.zeros(self.grid.shape, bool)
+        for m, a in zip(self._mesh, self.grid.axes, strict=True):
+            if a.size > 2:
+                band |= (m - a[0] < margin) | (a[-1] - m < margin)
+        return band
 
     def _resolution(self, depth: float) -> tuple[float, float]:
         return diffraction_resolution(self.wavelength, self.aperture, max(depth, self.wavelength)), \
@@ -155,7 +185,12 @@ class Tracker:
             tr.kf.predict()
             tr.age += 1
         for name, gamma in gamma_maps.items():
-            self._update_map(name, np.asarray(gamma, np.float32))
+            g = np.asarray(gamma, np.float32)
+            if g.shape != self.grid.shape:
+                raise ValueError(f"gamma_maps[{name!r}]: expected shape {self.grid.shape}, got {g.shape}")
+            recent = self._recent.setdefault(name, deque(maxlen=self.config.integrate_frames))
+            recent.append(g)
+            self._update_map(name, g, np.mean(recent, axis=0) if len(recent) > 1 else g)
         self.tracks = [t for t in self.tracks if t.misses <= self.config.max_misses]
         return self.states()
 
@@ -179,6 +214,8 @@ class Tracker:
         pred = kf.x[: self.nd]
         d2 = sum((m - ci) ** 2 for m, ci in zip(self._mesh, pred, strict=True))
         inside = d2 <= radius ** 2
+        if self.config.birth_interior and not self._near_border(pred, res):
+            inside &= ~self._border_band(res)  # a border maximum is the flank of something outside
         if not inside.any():
             return None
         masked = np.where(inside, gamma, -np.inf)
@@ -189,7 +226,8 @@ class Tracker:
         n_grains = max(inside.sum() * cell / grain, 1.0)
         return self._coords(pos3), val, n_grains, s_cov
 
-    def _update_map(self, name: str, gamma: np.ndarray) -> None:
+    def _update_map(self, name: str, current: np.ndarray, gamma: np.ndarray) -> None:
+        """Gate, assign and update the tracks of `name` on `gamma` (the current map or the window's mean)."""
         cfg = self.config
         tracks = [t for t in self.tracks if t.fingerprint == name]
         gated = [self._gated_peak(gamma, t) for t in tracks]
@@ -214,12 +252,15 @@ class Tracker:
                 self._miss(tr)
                 continue
             c, val, n_grains, _ = cands[j]
-            c_gamma = val / mean if mean > 0 else np.inf
+            c_gamma = self._current_contrast(current, c, tracks)
             p = float(pfa((val / g_m) ** 2 if g_m > 0 else np.inf, n_grains))
             if p > cfg.p_keep:
                 self._miss(tr)
                 continue
-            tr.kf.update(c, R=self._noise(c_gamma, c[-1]))
+            noise = self._noise(c_gamma, c[-1])
+            tr.kf.update(c, R=noise)
+            tr.c_gamma = float(c_gamma)
+            tr.precision = np.sqrt(np.diag(noise))
             tr.hits += 1
             tr.misses = 0
             tr.measured = True
@@ -228,6 +269,12 @@ class Tracker:
             tr.confidence = 1.0 - p
             tr.history.append(tr.kf.x[: self.nd].copy())
         self._births(name, gamma, tracks)
+
+    def _current_contrast(self, current: np.ndarray, c: np.ndarray, tracks: list[_Track]) -> float:
+        """C_γ of the current frame's map at `c` (against its mean outside the tracks)."""
+        mean, _ = self._background(current, [t.kf.x[: self.nd] for t in tracks])
+        val = float(current[self.grid.nearest_index(self._r3(c))])
+        return val / mean if mean > 0 else np.inf
 
     def _miss(self, tr: _Track) -> None:
         tr.misses += 1
@@ -240,7 +287,7 @@ class Tracker:
         if len(tracks) >= cfg.max_tracks_per_map:
             return
         dets = detect(gamma, self.grid, self.wavelength, self.aperture, self.bandwidth, self.c0, name=name,
-                      n_peaks=cfg.max_tracks_per_map)
+                      n_peaks=cfg.max_tracks_per_map, interior=cfg.birth_interior)
         for det in dets:
             if len([t for t in self.tracks if t.fingerprint == name]) >= cfg.max_tracks_per_map:
                 break
@@ -250,8 +297,10 @@ class Tracker:
             res, _ = self._resolution(c[-1])
             if any(np.linalg.norm(t.kf.x[: self.nd] - c) < 4 * res for t in self.tracks if t.fingerprint == name):
                 continue
-            kf = self._new_filter(c, self._noise(det.c_gamma, c[-1]))
-            tr = _Track(self._next_id, name, kf, gamma=det.gamma_max, last_pfa=det.pfa, confidence=1 - det.pfa)
+            noise = self._noise(det.c_gamma, c[-1])
+            kf = self._new_filter(c, noise)
+            tr = _Track(self._next_id, name, kf, gamma=det.gamma_max, last_pfa=det.pfa, confidence=1 - det.pfa,
+                        c_gamma=det.c_gamma, precision=np.sqrt(np.diag(noise)))
             tr.history.append(c.copy())
             self._next_id += 1
             self.tracks.append(tr)
@@ -265,7 +314,8 @@ class Tracker:
             cov = np.zeros((3, 3))
             sel = [0, 2] if nd == 2 else [0, 1, 2]
             cov[np.ix_(sel, sel)] = t.kf.P[:nd, :nd]
+            prec = self._r3(t.precision) if t.precision is not None else np.zeros(3)
             out.append(TrackState(t.track_id, t.fingerprint, pos.tolist(), vel.tolist(), cov.tolist(),
                                   float(t.confidence), t.age, t.status, t.measured, float(t.gamma),
-                                  float(t.last_pfa)))
+                                  float(t.last_pfa), float(t.c_gamma), prec.tolist()))
         return out

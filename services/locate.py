@@ -43,6 +43,10 @@ def add_locate_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", help="write the results as JSON (SI units)")
     p.add_argument("--png", help="write a PNG of γ over the confocal image (last frame)")
     p.add_argument("--frames", help="frame indices to process, e.g. 0:10 (default: all)")
+    p.add_argument("--allow-border", action="store_true",
+                   help="keep maxima closer than the diffraction resolution to the grid's border (skipped by "
+                        "default: there γ is most often the flank of something outside the region, e.g. the "
+                        "rise under a scattering layer's surface)")
 
 
 def check_calibration(cal: Acquisition, data: Acquisition) -> None:
@@ -122,7 +126,7 @@ def run_locate(args: argparse.Namespace) -> int:
             pw = imager.plane_waves(acq)
             gamma = imager.gamma(pw, fp)
             dets = detect(gamma, grid, lam, acq.probe.aperture[0], band[1] - band[0], acq.c0, name=fp.name,
-                          n_peaks=args.targets)
+                          n_peaks=args.targets, interior=not args.allow_border)
             truths = [np.asarray(t["position_m"], float) for t in acq.truth.get("targets", []) if "position_m" in t]
             row = {"frame_index": acq.frame_index, "timestamp_s": acq.timestamp, "detections": []}
             for d in dets:

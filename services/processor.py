@@ -136,6 +136,7 @@ class ProcessorConfig:
     max_frame_bytes: int = DEFAULT_MAX_BYTES
     publish_image: bool = True
     track: bool = True
+    track_integrate: int = 1  # tracker: search the mean of the last K γ-maps (fpcore.tracking)
     status_period: float = 1.0
     blas_threads: int | None = 1
 
@@ -146,6 +147,8 @@ class ProcessorConfig:
             raise ValueError(f"--svd-threshold: expected 0 < t <= 1, got {self.svd_threshold}")
         if self.n_peaks < 1:
             raise ValueError(f"--targets: expected >= 1, got {self.n_peaks}")
+        if self.track_integrate < 1:
+            raise ValueError(f"--track-integrate: expected an integer >= 1, got {self.track_integrate}")
 
 
 @dataclass
@@ -388,7 +391,8 @@ class Processor:
         lam = acq.c0 / acq.probe.centre_frequency
         # One track per fingerprint and expected target (cfg.n_peaks): a calibration describes one object.
         self._tracker = (Tracker(grid, lam, acq.probe.aperture[0], band[1] - band[0], acq.c0,
-                                 TrackerConfig(max_tracks_per_map=max(1, cfg.n_peaks))) if cfg.track else None)
+                                 TrackerConfig(max_tracks_per_map=max(1, cfg.n_peaks),
+                                               integrate_frames=cfg.track_integrate)) if cfg.track else None)
         pw = self._imager.plane_waves(acq)
         self._imager.kernel(pw)  # NUFFT plan (FFTW planning: seconds) before the first frame is timed
         for entry in self._entries.values():
@@ -764,6 +768,9 @@ def add_process_parser(sub: argparse._SubParsersAction) -> None:
     add_imaging_arguments(img, peaks_help="peaks reported per fingerprint")
     img.add_argument("--no-image", action="store_true", help="do not publish the confocal image")
     img.add_argument("--no-track", action="store_true", help="do not run the tracker")
+    img.add_argument("--track-integrate", type=int, default=1, metavar="K",
+                     help="tracker: search the mean of the last K γ-maps (fog decorrelates, a slow target "
+                          "persists; the track lags by v(K−1)Δt/2; default 1)")
     node = p.add_argument_group("node")
     node.add_argument("--queue", choices=("newest", "fifo"), default="newest",
                       help="newest: live, keep the newest frame, count drops; fifo: replay, block, drop nothing")
@@ -809,7 +816,7 @@ def config_from_args(args: argparse.Namespace) -> ProcessorConfig:
         band=parse_band(args.band) if args.band else None, n_freq=args.n_freq, svd_threshold=args.svd_threshold,
         **grid_ranges(args), n_out=args.n_out,
         n_peaks=args.targets, max_frame_bytes=args.max_frame_bytes, publish_image=not args.no_image,
-        track=not args.no_track, status_period=args.status_period)
+        track=not args.no_track, track_integrate=args.track_integrate, status_period=args.status_period)
 
 
 def run_process(args: argparse.Namespace) -> int:

@@ -181,8 +181,25 @@ def test_other_scenarios_quick_smoke() -> None:
     assert mus.calibration("fibre").truth["targets"][0]["kind"] == "fibre"
 
 
+def test_sinking_cylinder_is_the_2d_analogue() -> None:
+    sc = scenario("sinking-cylinder", quick=True, n_frames=12)
+    assert sc.dim == 2 and sc.probe.is_linear and sc.probe.n_elements == 64
+    first, last = sc.truth(0)["targets"], sc.truth(11)["targets"]
+    assert [t["name"] for t in first] == ["cylinder1", "cylinder2"]
+    assert [t["diameter_m"] for t in first] == [10e-3, 8e-3]
+    assert first[0]["moving"] and not first[1]["moving"]
+    # cylinder 1 settles 8 → 8.6 mm below the surface, decelerating; cylinder 2 stays put
+    assert first[0]["depth_below_surface_m"] == pytest.approx(8e-3)
+    assert last[0]["depth_below_surface_m"] == pytest.approx(8.6e-3)
+    assert last[1]["position_m"] == first[1]["position_m"]
+    acq = sc.frame(0)
+    assert acq.rf.shape[:2] == (64, 11) and np.all(np.isfinite(acq.rf))
+    cal = sc.calibration("cylinder1")
+    assert cal.truth["r0_m"] == first[0]["position_m"]
+
+
 def test_registry_and_full_sizes() -> None:
-    assert set(SCENARIOS) == {"sinking-sphere", "lesion-marker", "muscle-fibres"}
+    assert set(SCENARIOS) == {"sinking-sphere", "sinking-cylinder", "lesion-marker", "muscle-fibres"}
     with pytest.raises(KeyError):
         scenario("nope")
     full = scenario("sinking-sphere")

@@ -62,6 +62,7 @@ import math
 import os
 import re
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any, Literal
 
 import h5py
@@ -581,6 +582,8 @@ def read_uff(
     dataset: name of the uff.channel_data group (needed when the file holds several).
     frames: indices or slice of the frames to read (default: all).
     """
+    if not Path(path).is_file():
+        raise UFFError(f"{path}: expected an existing UFF (HDF5) file, found none")
     with h5py.File(path, "r") as f:
         name = _choose_dataset(f, dataset)
         cd = f[name]

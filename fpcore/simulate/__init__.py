@@ -37,6 +37,7 @@ from .scenarios import (
     lesion_marker,
     muscle_fibres,
     scenario,
+    sinking_cylinder,
     sinking_sphere,
 )
 from .targets import PAPER_SPHERE_MATERIAL, ElasticCylinder, ElasticSphere, MirrorSegment, PointCluster, Target
@@ -75,6 +76,7 @@ __all__ = [
     "rigid_cylinder_coefficients",
     "rigid_sphere_coefficients",
     "scenario",
+    "sinking_cylinder",
     "sinking_sphere",
     "sphere_coefficients",
 ]
