@@ -88,12 +88,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if last.get("gamma"):
         name, gamma = next(iter(last["gamma"].items()))
         det = next(d for d in last["detections"] if d["fingerprint"] == name)
-        truth = next((np.array(t["position_m"]) for t in last["truth"].get("targets", []) if t["name"] == name),
-                     None)
+        target = next((t for t in last["truth"].get("targets", []) if t["name"] == name), {})
+        truth = np.array(target["position_m"]) if "position_m" in target else None
         png = Path(args.out) / "demo_gamma_over_confocal.png"
         gamma_over_confocal(png, last["grid"], last["image"], gamma, np.array(det["position_m"]), truth=truth,
                             title=f"frame {last['frame_index']}, {name}: C_γ = {det['contrast_c_gamma']:.1f}, "
-                                  f"PFA = {det['pfa']:.1e}")
+                                  f"PFA = {det['pfa']:.1e}", name=name, diameter=target.get("diameter_m"),
+                            c_gamma=det["contrast_c_gamma"])
         console.print(f"figure: {png}")
     return 0
 

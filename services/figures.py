@@ -1,69 +1,231 @@
-"""PNG figures: γ over the confocal image (dB), 2D maps and 3D cross-sections through a point."""
+"""PNG figures in the layout of the paper's Figure 2: cross-sections of γ over the confocal image.
+
+Top row: the confocal image in dB (grey, −30…0 dB re its maximum), where a target deep in a scattering
+medium is lost in the multiple-scattering fog. Bottom row: the same sections with each target's γ-map
+over it, in dB re that map's maximum, one hue per target (red, green, …; the paper draws the 10 mm
+sphere in red and the 8 mm one in green). γ is a normalised amplitude (a Cauchy–Schwarz ratio,
+DESIGN §4.7), so its dB are 20·log10(γ/γ_max); only γ ≥ ``threshold``·γ_max is coloured (0.6: −4.4 dB).
+
+Both rows carry a white scale bar and, when the target's diameter is known (the fingerprint's
+``diameter_m`` state, or the ground truth), the dashed outline of the sphere of that diameter centred
+on the detection, cut by the section plane; else a dotted 1 mm ring around the detection. There is no
+marker on the detection itself: it would hide γ's spot, a few pixels wide. The ground truth, when
+given, is a cyan diamond. 2D grids give one (x, z) section; 3D grids give (x, z) through the first
+target and (y, z) through each target.
+"""
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from fpcore import Grid
 
-__all__ = ["gamma_over_confocal"]
+__all__ = ["Target", "gamma_over_confocal", "targets_over_confocal"]
+
+DB_FLOOR = -30.0
+#: (dim, bright) RGB of the γ overlay of the 1st, 2nd, … target (red and green as in the paper).
+HUES: tuple[tuple[tuple[float, float, float], tuple[float, float, float]], ...] = (
+    ((0.45, 0.0, 0.0), (1.0, 0.1, 0.05)),    # red
+    ((0.0, 0.35, 0.0), (0.15, 1.0, 0.15)),   # green
+    ((0.0, 0.15, 0.5), (0.2, 0.6, 1.0)),     # blue
+    ((0.4, 0.0, 0.4), (1.0, 0.3, 1.0)),      # magenta
+)
+MM = 1e3
+RING_MM = 1.0  # radius of the ring around a detection of unknown size, mm
 
 
-def _sections(grid: Grid, vol: np.ndarray, at: np.ndarray) -> list[tuple[str, np.ndarray, list[float], str, str]]:
-    """(title, image (rows = vertical axis), extent mm, xlabel, ylabel) of the sections through `at`."""
-    mm = 1e3
+@dataclass
+class Target:
+    """One target's γ-map and what is known about it; positions are [x, y, z] in metres (y ignored on
+    a 2D grid)."""
+
+    name: str
+    gamma: np.ndarray
+    found: np.ndarray
+    diameter: float | None = None
+    truth: np.ndarray | None = None
+    c_gamma: float | None = None
+
+
+@dataclass
+class _Section:
+    plane: str            # "xz" or "yz"
+    index: int | None     # index along the normal axis (None: the 2D grid itself)
+    title: str
+    extent: list[float]   # imshow extent, mm
+    xlabel: str
+
+
+def _edges(axis: np.ndarray) -> tuple[float, float]:
+    """First and last pixel edges of a regular axis, mm (nodes are pixel centres)."""
+    half = (float(axis[1] - axis[0]) if axis.size > 1 else 1e-4) / 2
+    return (float(axis[0]) - half) * MM, (float(axis[-1]) + half) * MM
+
+
+def _sections(grid: Grid, targets: Sequence[Target]) -> list[_Section]:
+    """(x, z) through the first target, then (y, z) through each target (3D; repeated planes once)."""
+    z0, z1 = _edges(grid.z)
+    x_ext = [*_edges(grid.x), z1, z0]
     if grid.ndim == 2:
-        return [("x–z", vol.T, [grid.x[0] * mm, grid.x[-1] * mm, grid.z[-1] * mm, grid.z[0] * mm], "x (mm)", "z (mm)")]
-    i, j, _ = grid.nearest_index(at)
-    return [
-        (f"x–z at y = {grid.y[j] * mm:.1f} mm", vol[:, j, :].T,
-         [grid.x[0] * mm, grid.x[-1] * mm, grid.z[-1] * mm, grid.z[0] * mm], "x (mm)", "z (mm)"),
-        (f"y–z at x = {grid.x[i] * mm:.1f} mm", vol[i, :, :].T,
-         [grid.y[0] * mm, grid.y[-1] * mm, grid.z[-1] * mm, grid.z[0] * mm], "y (mm)", "z (mm)"),
-    ]
+        return [_Section("xz", None, "(x, z)", x_ext, "x (mm)")]
+    j0 = grid.nearest_index(targets[0].found)[1]
+    out = [_Section("xz", j0, f"(x, z) at y = {grid.y[j0] * MM:.1f} mm", x_ext, "x (mm)")]
+    seen: set[int] = set()
+    for t in targets:
+        i = grid.nearest_index(t.found)[0]
+        if i in seen:
+            continue
+        seen.add(i)
+        out.append(_Section("yz", i, f"(y, z) at x = {grid.x[i] * MM:.1f} mm\nthrough {t.name}",
+                            [*_edges(grid.y), z1, z0], "y (mm)"))
+    return out
 
 
-def _in_plane(grid: Grid, p: np.ndarray, k: int) -> tuple[float, float]:
-    return (p[0] * 1e3, p[2] * 1e3) if (grid.ndim == 2 or k == 0) else (p[1] * 1e3, p[2] * 1e3)
+def _cut(vol: np.ndarray, sec: _Section) -> np.ndarray:
+    """The section of a grid-shaped array, rows = z."""
+    if sec.index is None:
+        return vol.T
+    return (vol[:, sec.index, :] if sec.plane == "xz" else vol[sec.index, :, :]).T
 
 
-def gamma_over_confocal(path: str | Path, grid: Grid, confocal: np.ndarray, gamma: np.ndarray,
-                        found: np.ndarray, truth: np.ndarray | None = None, title: str = "",
-                        threshold: float = 0.6) -> None:
-    """Confocal image in dB (grey, −30…0 dB) with γ ≥ threshold·max in colour; markers at the detection
-    (and truth); 2D: one section, 3D: x–z and y–z sections through the detection."""
+def _in_plane(p: np.ndarray, sec: _Section) -> tuple[float, float]:
+    """(horizontal, z) of a point in a section, mm."""
+    return (p[0] * MM, p[2] * MM) if sec.plane == "xz" else (p[1] * MM, p[2] * MM)
+
+
+def _off_plane(grid: Grid, p: np.ndarray, sec: _Section) -> float:
+    """Distance of a point from the section plane, m (0 on a 2D grid)."""
+    if sec.index is None:
+        return 0.0
+    return abs(float(p[1]) - float(grid.y[sec.index])) if sec.plane == "xz" else \
+        abs(float(p[0]) - float(grid.x[sec.index]))
+
+
+def _nice_length(span_mm: float) -> float:
+    """A 1-2-5 length (mm) of at most about a third of ``span_mm``."""
+    best = 1.0
+    for decade in (0.1, 1.0, 10.0, 100.0):
+        for m in (1.0, 2.0, 5.0):
+            if m * decade <= span_mm / 3:
+                best = m * decade
+    return best
+
+
+def _overlay_cmap(k: int) -> Any:
+    """Colour map of the k-th target's γ (dB): dim hue, half transparent at the floor → bright, opaque at 0 dB."""
+    from matplotlib.colors import LinearSegmentedColormap
+
+    dim, bright = HUES[k % len(HUES)]
+    return LinearSegmentedColormap.from_list(f"gamma{k}", [(*dim, 0.55), (*bright, 1.0)])
+
+
+def targets_over_confocal(path: str | Path, grid: Grid, confocal: np.ndarray, targets: Sequence[Target],
+                          title: str = "", threshold: float = 0.6) -> None:
+    """The paper's Figure 2 for one frame: confocal sections in dB (top row) and the same with each
+    target's γ in dB over it (bottom row), scale bars, detections, sphere outlines; written to ``path``."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Circle
+    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
+    if not targets:
+        raise ValueError("targets: expected at least one γ-map to draw")
+    if not 0 < threshold < 1:
+        raise ValueError(f"threshold: expected a fraction of γ's maximum in (0, 1), got {threshold:g}")
+    for t in targets:
+        if t.gamma.shape != grid.shape:
+            raise ValueError(f"{t.name}: γ has shape {t.gamma.shape}, expected the grid's {grid.shape}")
+    if confocal.shape != grid.shape:
+        raise ValueError(f"confocal: shape {confocal.shape}, expected the grid's {grid.shape}")
+    floor_db = 20 * math.log10(threshold)
     conf_db = 10 * np.log10(confocal / max(float(confocal.max()), 1e-30) + 1e-12)
-    conf_secs = _sections(grid, conf_db, found)
-    gam_secs = _sections(grid, gamma, found)
-    n = len(conf_secs)
-    fig, axes = plt.subplots(1, 2 * n, figsize=(5 * 2 * n, 4.6), constrained_layout=True, squeeze=False)
-    for k, ((name, cimg, ext, xl, yl), (_, gimg, _, _, _)) in enumerate(zip(conf_secs, gam_secs, strict=True)):
-        for m, overlay in enumerate((False, True)):
-            ax = axes[0, 2 * k + m]
-            ax.imshow(cimg, extent=ext, cmap="gray", vmin=-30, vmax=0, aspect="equal")
-            if overlay:
-                g = np.ma.masked_less(gimg, threshold * float(gamma.max()))
-                im = ax.imshow(g, extent=ext, cmap="autumn", alpha=0.85, aspect="equal",
-                               vmin=threshold * float(gamma.max()), vmax=float(gamma.max()))
-                fig.colorbar(im, ax=ax, label="γ", shrink=0.8)
-                ax.plot(*_in_plane(grid, found, k), "+", color="lime", ms=14, mew=2, label="detection")
-                ax.set_title(f"γ ≥ {threshold:.0%} of max over confocal, {name}")
+    gamma_db = [20 * np.log10(np.maximum(t.gamma, 1e-30) / max(float(t.gamma.max()), 1e-30)) for t in targets]
+    secs = _sections(grid, targets)
+    widths = [s.extent[1] - s.extent[0] for s in secs]
+    height = abs(secs[0].extent[2] - secs[0].extent[3])
+    bar = _nice_length(min(widths))
+    panel_h = 3.0
+    fig_w = min(panel_h * sum(widths) / height + 2.6, 24.0)
+    fig, axes = plt.subplots(2, len(secs), figsize=(fig_w, 2 * panel_h + 1.3), squeeze=False,
+                             width_ratios=widths, layout="constrained")
+    for c, sec in enumerate(secs):
+        for row in (0, 1):
+            ax = axes[row, c]
+            ax.set_facecolor("black")
+            grey = ax.imshow(_cut(conf_db, sec), extent=sec.extent, cmap="gray", vmin=DB_FLOOR, vmax=0,
+                             aspect="equal", interpolation="nearest")
+            if row == 1:
+                for k, gdb in enumerate(gamma_db):
+                    g = np.ma.masked_less(_cut(gdb, sec), floor_db)
+                    ax.imshow(g, extent=sec.extent, cmap=_overlay_cmap(k), vmin=floor_db, vmax=0.0,
+                              aspect="equal", interpolation="nearest")
+            for k, t in enumerate(targets):
+                colour = HUES[k % len(HUES)][1]
+                h, v = _in_plane(t.found, sec)
+                off = _off_plane(grid, t.found, sec)
+                in_plane = off <= max(grid.spacing)
+                # No marker on the detection itself: it would hide γ's spot (a few pixels wide).
+                if t.diameter:
+                    r2 = (t.diameter / 2) ** 2 - off ** 2  # the sphere cut by this plane
+                    if r2 > 0:
+                        ax.add_patch(Circle((h, v), math.sqrt(r2) * MM, fill=False, ls="--", lw=1.4, ec=colour))
+                elif in_plane:
+                    ax.add_patch(Circle((h, v), RING_MM, fill=False, ls=":", lw=1.4, ec=colour))
+                if in_plane and row == 1 and t.c_gamma is not None:
+                    ax.text(h + RING_MM, v + RING_MM, f"C$_γ$ = {t.c_gamma:.1f}", color=colour, ha="left",
+                            va="top", fontsize=9, fontweight="bold", clip_on=True,
+                            bbox={"facecolor": "black", "alpha": 0.6, "pad": 1.5, "lw": 0})
+                if t.truth is not None and _off_plane(grid, t.truth, sec) <= max(grid.spacing):
+                    ax.plot(*_in_plane(t.truth, sec), "D", mfc="none", mec="cyan", ms=12, mew=1.0)
+            ax.add_artist(AnchoredSizeBar(ax.transData, bar, f"{bar:g} mm", "lower left", pad=0.4, color="white",
+                                          frameon=False, size_vertical=height / 60, fontproperties={"size": 9}))
+            ax.set_xlim(sec.extent[0], sec.extent[1])
+            ax.set_ylim(sec.extent[2], sec.extent[3])
+            if row == 0:
+                ax.set_title(sec.title, fontsize=10)
             else:
-                ax.set_title(f"confocal image (dB), {name}")
-            if truth is not None:
-                ax.plot(*_in_plane(grid, truth, k), "o", mfc="none", mec="cyan", ms=16, label="truth")
-            ax.set_xlabel(xl)
-            ax.set_ylabel(yl)
-            if overlay or truth is not None:
-                ax.legend(loc="lower right", fontsize=8)
+                ax.set_xlabel(sec.xlabel)
+            if c == 0:
+                ax.set_ylabel(("confocal image" if row == 0 else "γ over confocal") + "\nz (mm)")
+    fig.colorbar(grey, ax=axes[0, :], label="confocal (dB re max)", shrink=0.9, pad=0.01, aspect=15)
+    for k in reversed(range(len(targets))):  # the first target's bar nearest the maps
+        fig.colorbar(ScalarMappable(Normalize(floor_db, 0.0), _overlay_cmap(k)), ax=axes[1, :], shrink=0.9,
+                     pad=0.01, aspect=15, label=f"γ {targets[k].name} (dB re max)")
+    handles = []
+    for k, t in enumerate(targets):
+        colour = HUES[k % len(HUES)][1]
+        handles.append(Line2D([], [], ls="--", color=colour,
+                              label=f"{t.name}: outline of d = {t.diameter * MM:g} mm centred on its detection")
+                       if t.diameter else
+                       Line2D([], [], ls=":", color=colour,
+                              label=f"{t.name}: {RING_MM:g} mm ring around its detection"))
+    if any(t.truth is not None for t in targets):
+        handles.append(Line2D([], [], ls="none", marker="D", mfc="none", mec="cyan", label="ground truth"))
+    fig.legend(handles=handles, loc="outside lower center", ncols=len(handles), fontsize=9, frameon=False)
     if title:
         fig.suptitle(title)
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def gamma_over_confocal(path: str | Path, grid: Grid, confocal: np.ndarray, gamma: np.ndarray,
+                        found: np.ndarray, truth: np.ndarray | None = None, title: str = "",
+                        threshold: float = 0.6, *, name: str = "target", diameter: float | None = None,
+                        c_gamma: float | None = None) -> None:
+    """One γ-map over the confocal image (`targets_over_confocal` with a single `Target`); ``diameter``
+    (m) draws the target's outline at ``found``, ``c_gamma`` labels it."""
+    targets_over_confocal(path, grid, confocal, [Target(name, gamma, np.asarray(found, float), diameter,
+                                                        None if truth is None else np.asarray(truth, float),
+                                                        c_gamma)],
+                          title=title, threshold=threshold)

@@ -78,21 +78,43 @@ def test_figure_png(tmp_path: Path) -> None:
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_figure_draws_every_fingerprint_with_its_recorded_diameter(tmp_path: Path) -> None:
+    """The Figure 2 layout: all γ-maps of the frame, outlines from the fingerprints' diameter_m state."""
+    import matplotlib.image
+
+    frame = _gamma_frames()[2]
+    states = {m.fingerprint: m.state for _, m in iter_messages(SAMPLE)
+              if isinstance(m, GammaMap) and m.frame_index == frame}
+    out = to_figure(SAMPLE, frame, tmp_path / "all.png")
+    assert out["fingerprints"] == list(states)
+    assert out["diameters_m"] == {k: v["diameter_m"] for k, v in states.items()}
+    img = matplotlib.image.imread(tmp_path / "all.png")
+    assert img.shape[0] > 500 and img.shape[1] > 1000  # two rows, (x, z) + one (y, z) per sphere
+    one = to_figure(SAMPLE, frame, tmp_path / "one.png", fingerprint="sphere2")
+    assert one["fingerprints"] == ["sphere2"] and one["detection"][0] > 0
+
+
+def test_figure_rejects_bad_threshold(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["figure", str(SAMPLE), "--frame", "1", "--png", str(tmp_path / "x.png"), "--threshold", "1.5"]) == 2
+    assert "--threshold: expected a fraction of γ's maximum in (0, 1), got 1.5" in capsys.readouterr().err
+
+
 def test_figure_missing_frame(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="frame 999"):
         to_figure(SAMPLE, 999, tmp_path / "x.png")
 
 
-def test_live_view_logs_the_bus_to_rrd(tmp_path) -> None:
-    """`fp view --live`: messages put on fp/demo/* over loopback zenoh end up in the .rrd, per frame."""
+@pytest.mark.parametrize("serve", [False, True], ids=["rrd", "rrd+serve"])
+def test_live_view_logs_the_bus_to_rrd(tmp_path: Path, serve: bool) -> None:
+    """`fp view --live [--serve]`: messages put on fp/demo/* over loopback zenoh end up in the .rrd, per
+    frame, and (--serve) in the loopback web viewer's gRPC proxy."""
     import threading
     import time
 
     import zenoh
 
     from services.bus import EPHEMERAL, BusConfig, free_port, open_session, wait_for_matching, wait_for_token
-    from services.recorder import iter_raw
-    from services.viewer import live_to_rrd
+    from services.viewer import live_to_rrd, serve_loopback
 
     hub = f"tcp/127.0.0.1:{free_port()}"
     stop = threading.Event()
@@ -100,31 +122,166 @@ def test_live_view_logs_the_bus_to_rrd(tmp_path) -> None:
     live: dict = {}
     rrd = tmp_path / "live.rrd"
     pubs: dict[str, zenoh.Publisher] = {}
-    with open_session(BusConfig(listen=[hub], connect=[], shm="off")) as session:
-        viewer = threading.Thread(target=lambda: out.update(live_to_rrd(
-            BusConfig(listen=[EPHEMERAL], connect=[hub], shm="off"), "demo", rrd, stop=stop, duration=60,
-            stats=live)))
-        viewer.start()
+    viewer = serve_loopback(port=free_port(), grpc_port=free_port()) if serve else None
+    try:
+        with open_session(BusConfig(listen=[hub], connect=[], shm="off")) as session:
+            thread = threading.Thread(target=lambda: out.update(live_to_rrd(
+                BusConfig(listen=[EPHEMERAL], connect=[hub], shm="off"), "demo", rrd, stop=stop, duration=60,
+                stats=live, grpc_url=viewer.grpc_url if viewer else None)))
+            thread.start()
+            try:
+                assert wait_for_token(session, "fp/demo/alive/viewer", 20.0)
+                # One blocking publisher per key, each matched before the first put: a plain session.put
+                # drops under load (congestion control DROP) and a put before the subscription arrives is lost.
+                n = 0
+                for _schema, channel, msg in iter_raw(SAMPLE):
+                    if channel.topic not in pubs:
+                        pubs[channel.topic] = session.declare_publisher(
+                            channel.topic, congestion_control=zenoh.CongestionControl.BLOCK)
+                        assert wait_for_matching(pubs[channel.topic], 20.0), channel.topic
+                    pubs[channel.topic].put(bytes(msg.data))
+                    n += 1
+                deadline = time.monotonic() + 20.0  # until the viewer has logged every message
+                while live.get("messages", 0) < n and time.monotonic() < deadline:
+                    time.sleep(0.05)
+            finally:
+                for pub in pubs.values():
+                    pub.undeclare()
+                stop.set()
+                thread.join(30)
+        assert (out["messages"], out["undecodable"], out["dropped"]) == (n, 0, 0)
+        assert out["frames"] == [0, 1, 2, 3]
+        assert rrd.stat().st_size > 10_000
+        if viewer is not None:
+            expected = _rrd_entities(rrd)
+            assert {"/world/gamma/sphere1", "/world/tracks/1", "/sections/sphere2/yz/gamma"} <= expected
+            _assert_loopback_only(viewer.web_port, viewer.grpc_port)
+    finally:
+        if viewer is not None:
+            viewer.stop()
+
+
+# --- `fp view --serve`: the Rerun web viewer on 127.0.0.1 only -----------------------------------------------
+
+def _rrd_entities(rrd: Path) -> set[str]:
+    from rerun.chunk import RrdReader
+
+    return {chunk.entity_path for chunk in RrdReader(rrd).stream()}
+
+
+def _local_addresses() -> list[tuple[int, tuple]]:
+    """(family, sockaddr without port) of this machine's non-loopback addresses, from /proc."""
+    import ipaddress
+    import socket
+
+    out: list[tuple[int, tuple]] = []
+    fib = Path("/proc/net/fib_trie")
+    if fib.exists():
+        lines = fib.read_text().splitlines()
+        v4 = {lines[i - 1].split()[-1] for i, line in enumerate(lines) if "/32 host LOCAL" in line}
+        out += [(socket.AF_INET, (a,)) for a in sorted(v4) if not ipaddress.ip_address(a).is_loopback]
+    inet6 = Path("/proc/net/if_inet6")
+    if inet6.exists():
+        for line in inet6.read_text().splitlines():
+            hexaddr, ifindex = line.split()[:2]
+            addr = ipaddress.IPv6Address(bytes.fromhex(hexaddr))
+            if not addr.is_loopback:
+                out.append((socket.AF_INET6, (str(addr), 0, int(ifindex, 16) if addr.is_link_local else 0)))
+    return out
+
+
+def _assert_loopback_only(*ports: int) -> None:
+    """Every TCP listener on ``ports`` (the whole network namespace, /proc/net/tcp{,6}) is 127.0.0.1, and a
+    connection to each port through each non-loopback address of this machine is refused."""
+    import socket
+
+    from services.viewer import listening_addresses
+
+    for port in ports:
+        listeners = listening_addresses(port=port)
+        if listeners is None:
+            pytest.skip("no /proc/net/tcp: cannot list listening sockets here")
+        assert listeners and {ip for ip, _ in listeners} == {"127.0.0.1"}, (port, listeners)
+        for family, addr in _local_addresses():
+            with socket.socket(family, socket.SOCK_STREAM) as s:
+                s.settimeout(2.0)
+                with pytest.raises(ConnectionRefusedError):
+                    s.connect((addr[0], port, *addr[1:]))
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
         try:
-            assert wait_for_token(session, "fp/demo/alive/viewer", 20.0)
-            # One blocking publisher per key, each matched before the first put: a plain session.put drops
-            # under load (congestion control DROP) and a put before the subscription arrives is lost.
-            n = 0
-            for _schema, channel, msg in iter_raw(SAMPLE):
-                if channel.topic not in pubs:
-                    pubs[channel.topic] = session.declare_publisher(
-                        channel.topic, congestion_control=zenoh.CongestionControl.BLOCK)
-                    assert wait_for_matching(pubs[channel.topic], 20.0), channel.topic
-                pubs[channel.topic].put(bytes(msg.data))
-                n += 1
-            deadline = time.monotonic() + 20.0  # until the viewer has logged every message
-            while live.get("messages", 0) < n and time.monotonic() < deadline:
-                time.sleep(0.05)
-        finally:
-            for pub in pubs.values():
-                pub.undeclare()
-            stop.set()
-            viewer.join(30)
-    assert (out["messages"], out["undecodable"], out["dropped"]) == (n, 0, 0)
-    assert out["frames"] == [0, 1, 2, 3]
-    assert rrd.stat().st_size > 10_000
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out
+
+
+def test_view_serve_binds_loopback_only(tmp_path: Path) -> None:
+    """`fp view REC --serve` in a child process: the page, its Wasm and the recording's data come over
+    http://127.0.0.1; nothing listens on another address; SIGTERM stops it and its rerun server."""
+    import os
+    import queue
+    import signal
+    import threading
+    import urllib.request
+
+    from services.bus import free_port
+    from services.viewer import listening_addresses
+
+    if not Path("/proc/net/tcp").exists():
+        pytest.skip("needs Linux /proc to check the listening sockets")
+    web, grpc = free_port(), free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "view", str(SAMPLE), "--rrd",
+                             str(tmp_path / "s.rrd"), "--serve", "--port", str(web), "--grpc-port", str(grpc)],
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines: queue.Queue[str] = queue.Queue()
+    threading.Thread(target=lambda: [lines.put(line) for line in proc.stdout], daemon=True).start()
+    rerun_pids: list[int] = []
+    try:
+        url = ""
+        while "loopback only" not in url:
+            url = lines.get(timeout=30)
+        assert f"http://127.0.0.1:{web}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A{grpc}%2Fproxy" in url
+        rerun_pids = _children(proc.pid)
+        assert rerun_pids
+        with urllib.request.urlopen(f"http://127.0.0.1:{web}/", timeout=5) as r:
+            assert r.status == 200 and b"Rerun" in r.read()
+        with urllib.request.urlopen(f"http://127.0.0.1:{web}/re_viewer_bg.wasm", timeout=5) as r:
+            assert r.read(4) == b"\x00asm"
+        assert "/world/gamma/sphere1" in _rrd_entities(tmp_path / "s.rrd")
+        _assert_loopback_only(web, grpc)
+        assert {ip for pid in rerun_pids for ip, _ in listening_addresses(pid) or []} == {"127.0.0.1"}
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(15) == 0
+        assert listening_addresses(port=web) == [] and listening_addresses(port=grpc) == []
+        assert not any(Path(f"/proc/{pid}").exists() for pid in rerun_pids)
+    finally:
+        for pid in [proc.pid, *rerun_pids]:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        proc.wait(5)
+
+
+def test_view_serve_rejects_bad_ports(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import socket
+
+    from services.bus import free_port
+
+    assert main(["view", str(SAMPLE), "--rrd", str(tmp_path / "s.rrd"), "--serve", "--port", "0"]) == 2
+    assert "--port: expected a TCP port 1…65535, got 0" in capsys.readouterr().err
+    assert main(["view", str(SAMPLE), "--serve", "--port", "9999", "--grpc-port", "9999"]) == 2
+    assert "expected two different ports" in capsys.readouterr().err
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        assert main(["view", str(SAMPLE), "--serve", "--port", str(free_port()), "--grpc-port", str(port)]) == 2
+        assert f"--grpc-port: 127.0.0.1:{port} is not free" in capsys.readouterr().err
+    assert not (tmp_path / "s.rrd").exists()  # checked before converting
