@@ -61,6 +61,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
             t.add_row(*r)
         return t
 
+    history: list[dict] = []
+
     def on_frame(res: dict) -> None:
         truths = {tg["name"]: np.array(tg["position_m"]) for tg in res["truth"].get("targets", [])}
         tracks = {tr["fingerprint"]: tr["id"] for tr in res["tracks"]}
@@ -71,6 +73,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
             rows.append((str(res["frame_index"]), d["fingerprint"], _mm(pos), _mm(tr) if tr is not None else "",
                          err, f"{d['contrast_c_gamma']:.1f}", f"{d['pfa']:.1e}", str(tracks.get(d["fingerprint"], ""))))
         last.update(res)
+        history.append({"frame_index": res["frame_index"], "tracks": res["tracks"],
+                        "truth": res["truth"].get("targets", [])})
 
     console.print(f"[bold]fingerprint demo[/]: {args.scenario} on loopback zenoh — publisher → processor → "
                   f"recorder; grid {grid.shape}; writing to {args.out}")
@@ -96,6 +100,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
                                   f"PFA = {det['pfa']:.1e}", name=name, diameter=target.get("diameter_m"),
                             c_gamma=det["contrast_c_gamma"])
         console.print(f"figure: {png}")
+    if history and last.get("image") is not None:
+        from .figures import tracks_over_confocal
+
+        png = Path(args.out) / "demo_tracks.png"
+        tracks_over_confocal(png, last["grid"], last["image"], history)
+        console.print(f"tracks figure: {png}")
     return 0
 
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from fpcore import Grid
 
-__all__ = ["Target", "gamma_over_confocal", "targets_over_confocal"]
+__all__ = ["Target", "gamma_over_confocal", "targets_over_confocal", "tracks_over_confocal"]
 
 DB_FLOOR = -30.0
 #: (dim, bright) RGB of the γ overlay of the 1st, 2nd, … target (red and green as in the paper).
@@ -229,3 +229,83 @@ def gamma_over_confocal(path: str | Path, grid: Grid, confocal: np.ndarray, gamm
                                                         None if truth is None else np.asarray(truth, float),
                                                         c_gamma)],
                           title=title, threshold=threshold)
+
+
+def tracks_over_confocal(path: str | Path, grid: Grid, confocal: np.ndarray, history: list[dict]) -> None:
+    """Tracks against the truth over the confocal image (dB; 3D: the x–z section at y = 0), with one zoom
+    per target and the distance to the truth per frame (issue 5 figure).
+
+    ``history``: one entry per frame, ``{"frame_index", "tracks": [{"id", "fingerprint", "position_m"}],
+    "truth": [{"name", "position_m", "diameter_m"}]}``; a track is compared with the truth of the target
+    its fingerprint is named after.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Circle
+
+    sec = confocal[:, grid.nearest_index(np.zeros(3))[1], :] if grid.ndim == 3 else confocal
+    img = 10 * np.log10(sec.T / max(float(sec.max()), 1e-30) + 1e-12)
+    ext = [grid.x[0] * MM, grid.x[-1] * MM, grid.z[-1] * MM, grid.z[0] * MM]
+    names = sorted({t["name"] for h in history for t in h.get("truth", [])}
+                   | {tr["fingerprint"] for h in history for tr in h["tracks"]})
+    colours = {n: HUES[k % len(HUES)][1] for k, n in enumerate(names)}
+    truth = {n: np.array([[h["frame_index"], *t["position_m"]] for h in history for t in h.get("truth", [])
+                          if t["name"] == n]).reshape(-1, 4) for n in names}
+    tracks: dict[tuple[str, int], list[list[float]]] = {}
+    for h in history:
+        for tr in h["tracks"]:
+            tracks.setdefault((tr["fingerprint"], tr["id"]), []).append([h["frame_index"], *tr["position_m"]])
+    fig = plt.figure(figsize=(5 + 4 * len(names), 8), constrained_layout=True)
+    gs = fig.add_gridspec(2, 1 + len(names), height_ratios=[1.4, 1])
+    ax0 = fig.add_subplot(gs[0, 0])
+    zooms = [fig.add_subplot(gs[0, 1 + k]) for k in range(len(names))]
+    ax_err = fig.add_subplot(gs[1, :])
+    for ax in [ax0, *zooms]:
+        ax.imshow(img, extent=ext, cmap="gray", vmin=-30, vmax=0, aspect="equal")
+        for n in names:
+            tru = truth[n]
+            if tru.size:
+                ax.plot(tru[:, 1] * MM, tru[:, 3] * MM, "-", color="cyan", lw=2.5, alpha=0.8)
+                ax.plot(tru[-1, 1] * MM, tru[-1, 3] * MM, "o", mfc="none", mec="cyan", ms=9)  # last (or static)
+                d = next((t.get("diameter_m") for h in history for t in h.get("truth", []) if t["name"] == n), None)
+                if d:
+                    ax.add_patch(Circle((tru[0, 1] * MM, tru[0, 3] * MM), d / 2 * MM, fill=False,
+                                        ec=colours[n], ls=":", lw=1))
+        for (n, tid), pts in tracks.items():
+            p = np.array(pts)
+            ax.plot(p[:, 1] * MM, p[:, 3] * MM, ".-", color=colours[n], ms=4, lw=1, label=f"track {tid} ({n})")
+    ax0.set_xlim(ext[0], ext[1])
+    ax0.set_ylim(ext[2], ext[3])
+    ax0.plot([], [], "-", color="cyan", lw=2.5, label="truth")
+    ax0.legend(loc="lower left", fontsize=7)
+    ax_err.set_title("distance of each track to its target's truth, per frame", fontsize=9)
+    ax0.set_title("tracks and truth (cyan, ○ last) over the confocal\nimage"
+                  f"{' at y = 0' if grid.ndim == 3 else ''} (dB); dotted: target outline", fontsize=9)
+    for ax in [ax0, *zooms]:
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("z (mm)")
+    for ax, n in zip(zooms, names, strict=True):
+        pts = [truth[n][:, [1, 3]]] + [np.array(p)[:, [1, 3]] for (m, _), p in tracks.items() if m == n]
+        allp = np.concatenate([p for p in pts if p.size]) * MM if any(p.size for p in pts) else np.zeros((1, 2))
+        centre = truth[n][:, [1, 3]].mean(axis=0) * MM if truth[n].size else allp.mean(axis=0)
+        half = max(1.0, 0.75 * float(np.ptp(allp, axis=0).max()) + 0.3)
+        half = min(half, 5.0)
+        ax.set_xlim(centre[0] - half, centre[0] + half)
+        ax.set_ylim(centre[1] + half, centre[1] - half)
+        ax.set_title(f"zoom on {n}", fontsize=9)
+    for (n, tid), pts in tracks.items():
+        p = np.array(pts)
+        tru = {int(f): r for f, *r in truth[n]} if truth[n].size else {}
+        err = [(f, np.linalg.norm(np.array(r) - tru[int(f)]) * MM) for f, *r in p if int(f) in tru]
+        if err:
+            e = np.array(err)
+            ax_err.semilogy(e[:, 0], np.maximum(e[:, 1], 1e-3), "o-", color=colours[n], ms=4,
+                            label=f"track {tid} ({n})")
+    ax_err.axhline(1.0, color="k", ls="--", lw=0.8, label="1 mm")
+    ax_err.set_xlabel("frame")
+    ax_err.set_ylabel("distance to truth (mm)")
+    ax_err.legend(fontsize=7, ncol=4)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

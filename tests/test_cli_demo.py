@@ -19,6 +19,7 @@ def test_demo_streams_records_and_finds_both_spheres(tmp_path) -> None:
     files = summary["recording"]["files"]
     assert files and all(f.endswith(".mcap") for f in files)
     assert (tmp_path / "demo_gamma_over_confocal.png").stat().st_size > 10_000
+    assert (tmp_path / "demo_tracks.png").stat().st_size > 10_000
 
 
 def test_bad_arguments_give_an_error_line(capsys) -> None:
