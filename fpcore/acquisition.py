@@ -109,12 +109,22 @@ class Probe:
 
 @dataclass(frozen=True)
 class PlaneWaveSequence:
-    """Transmitted plane waves: direction sines (N_θ, 2) = (s_x, s_y)."""
+    """Transmitted plane waves: direction sines (N_θ, 2) = (s_x, s_y); ``prf`` (Hz, optional): the
+    transmits fire in order every 1/prf (needed only for motion-aware fingerprints)."""
 
     sines: np.ndarray
+    prf: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "sines", _as_sines(self.sines))
+        if self.prf is not None and not (np.isfinite(self.prf) and self.prf > 0):
+            raise ValueError(f"prf: expected a positive pulse repetition frequency in Hz, got {self.prf}")
+
+    def transmit_times(self) -> np.ndarray:
+        """Firing time of each transmit relative to the middle of the sequence, (j − (N_θ − 1)/2)/prf (s)."""
+        if self.prf is None:
+            raise ValueError("prf: the sequence has no pulse repetition frequency (transmit times unknown)")
+        return (np.arange(self.n_waves) - (self.n_waves - 1) / 2) / self.prf
 
     @classmethod
     def from_angles(cls, theta_x_deg: np.ndarray, theta_y_deg: np.ndarray | None = None) -> PlaneWaveSequence:

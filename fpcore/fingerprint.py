@@ -21,6 +21,15 @@ Virtual shift (paper eq. BF; DESIGN §4.6): F(r) = S ∘ F(r0) ∘ S with S = P(
 (the sign that makes γ computed on R = R0 peak at r0 with numpy's FFT; tests/test_fingerprint.py).
 The shift is applied without apodization, so ‖F(r)‖ = ‖F(r0)‖: the angular filter A is applied at r0
 only. `angular_mask` exposes A(θ, r) for callers that tile the field of view.
+
+Motion-aware fingerprints (paper, Discussion: "the fingerprint could be parameterised by the target's
+velocity"): transmits fire in sequence, so a target moving at v is at r + v τ_j when transmit j
+insonifies it (τ_j relative to the sequence's middle). Its echo to transmit j is the fingerprint
+shifted by δ_j = v τ_j on both ends — the same virtual shift as above, applied per transmit column:
+F_v(f, o, j) = e^{-ik(s_o·δρ_j + c_o δz_j)} F(f, o, j) e^{-ik(s_j·δρ_j + c_j δz_j)}. Motion during one
+echo's reception (tens of µs) and the Doppler scaling of the band (v/c0 ≲ 1e-3) are neglected.
+`moving_fingerprint` builds F_v; a set of them over velocities is a `Dictionary` whose per-pixel
+argmax estimates v (see bench/validate_motion.py).
 """
 
 from __future__ import annotations
@@ -42,6 +51,7 @@ __all__ = [
     "point_fingerprint",
     "mirror_fingerprint",
     "check_geometry",
+    "moving_fingerprint",
 ]
 
 
@@ -86,6 +96,31 @@ class Fingerprint:
             c = np.sqrt(1 - s[:, 0] ** 2 - s[:, 1] ** 2)
             return np.exp(-1j * k[:, None] * (s[:, 0] * dr[0] + s[:, 1] * dr[1] + c * dr[2])[None, :])
         return (ramp(self.out_sines)[:, :, None] * self.data * ramp(self.in_sines)[:, None, :]).astype(np.complex64)
+
+
+def moving_fingerprint(fp: Fingerprint, velocity: np.ndarray, transmit_times: np.ndarray) -> Fingerprint:
+    """F_v: ``fp`` for a target moving at ``velocity`` (m/s, (v_x, v_y, v_z)) while the transmits fire
+    at ``transmit_times`` (s, one per transmit, relative to the time the position refers to) — the
+    per-transmit virtual shift δ_j = v τ_j of the module doc. state gains ``velocity_m_s``."""
+    v = np.asarray(velocity, dtype=float).reshape(3)
+    tau = np.asarray(transmit_times, dtype=float).reshape(-1)
+    if tau.size != fp.in_sines.shape[0]:
+        raise ValueError(f"transmit_times: expected {fp.in_sines.shape[0]} values (one per transmit), "
+                         f"got {tau.size}")
+    k = 2 * np.pi * fp.freqs / fp.c0
+    delta = tau[:, None] * v[None, :]  # (N_i, 3)
+    c_in = np.sqrt(1 - fp.in_sines[:, 0] ** 2 - fp.in_sines[:, 1] ** 2)
+    ramp_in = np.exp(-1j * k[:, None] * (fp.in_sines[:, 0] * delta[:, 0] + fp.in_sines[:, 1] * delta[:, 1]
+                                         + c_in * delta[:, 2])[None, :])  # (N_f, N_i)
+    c_out = np.sqrt(1 - fp.out_sines[:, 0] ** 2 - fp.out_sines[:, 1] ** 2)
+    phase_out = fp.out_sines[:, :1] @ delta[:, :1].T + fp.out_sines[:, 1:2] @ delta[:, 1:2].T \
+        + c_out[:, None] * delta[None, :, 2]  # (N_o, N_i): s_o·δ_j
+    ramp_out = np.exp(-1j * k[:, None, None] * phase_out[None, :, :])  # (N_f, N_o, N_i)
+    data = (fp.data * ramp_out * ramp_in[:, None, :]).astype(np.complex64)
+    state = dict(fp.state, velocity_m_s=[float(x) for x in v])
+    return Fingerprint(data, fp.freqs, fp.out_sines, fp.in_sines, fp.c0, fp.r0, name=fp.name,
+                       provenance=fp.provenance, state=state, n_s=fp.n_s, singular_values=fp.singular_values,
+                       n_t=fp.n_t)
 
 
 def check_geometry(fp: Fingerprint, pw: PlaneWaveData) -> None:

@@ -15,11 +15,13 @@ import numpy as np
 
 from fpcore import (
     Acquisition,
+    Fingerprint,
     Grid,
     Imager,
     ImagingConfig,
     detect,
     from_calibration,
+    moving_fingerprint,
 )
 
 from .imaging_args import add_imaging_arguments, build_model, grid_ranges
@@ -43,6 +45,9 @@ def add_locate_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", help="write the results as JSON (SI units)")
     p.add_argument("--png", help="write a PNG of γ over the confocal image (last frame)")
     p.add_argument("--frames", help="frame indices to process, e.g. 0:10 (default: all)")
+    p.add_argument("--velocity", metavar="VX,VZ[,VY]",
+                   help="target velocity in m/s: use the motion-aware fingerprint (each transmit sees the target "
+                        "where it is when that transmit fires; needs the data's PRF)")
     p.add_argument("--allow-border", action="store_true",
                    help="keep maxima closer than the diffraction resolution to the grid's border (skipped by "
                         "default: there γ is most often the flank of something outside the region, e.g. the "
@@ -61,6 +66,20 @@ def check_calibration(cal: Acquisition, data: Acquisition) -> None:
         raise ValueError(f"calibration sampling_frequency: {cal.fs:g} Hz, data has {data.fs:g} Hz (same expected)")
     if abs(cal.c0 - data.c0) > 1e-6 * data.c0:
         raise ValueError(f"calibration sound_speed: {cal.c0:g} m/s, data has {data.c0:g} m/s (same expected)")
+
+
+def _moving(fp: Fingerprint, text: str, data: Acquisition) -> Fingerprint:
+    """The motion-aware fingerprint for --velocity VX,VZ[,VY] (m/s) and the data's transmit times."""
+    try:
+        v = [float(x) for x in text.split(",")]
+    except ValueError:
+        raise ValueError(f"--velocity: expected VX,VZ[,VY] in m/s, got {text!r}") from None
+    if len(v) not in (2, 3) or not np.all(np.isfinite(v)):
+        raise ValueError(f"--velocity: expected VX,VZ[,VY] in m/s, got {text!r}")
+    if data.sequence.prf is None:
+        raise ValueError("--velocity: the data has no PRF (UFF channel_data/PRF), so the transmit times are unknown")
+    return moving_fingerprint(fp, np.array([v[0], v[2] if len(v) == 3 else 0.0, v[1]]),
+                              data.sequence.transmit_times())
 
 
 def _r0(args: argparse.Namespace, cal: Acquisition) -> tuple[np.ndarray, float]:
@@ -116,6 +135,8 @@ def run_locate(args: argparse.Namespace) -> int:
     else:
         pw0 = imager.plane_waves(first)
         fp = build_model(args.model, pw0)
+    if args.velocity:
+        fp = _moving(fp, args.velocity, first)
     console.print(f"{len(frames)} frame(s), band {band[0] / 1e6:.2f}–{band[1] / 1e6:.2f} MHz, grid {grid.shape}")
     lam = first.c0 / fc
     results = []

@@ -199,7 +199,8 @@ def test_sinking_cylinder_is_the_2d_analogue() -> None:
 
 
 def test_registry_and_full_sizes() -> None:
-    assert set(SCENARIOS) == {"sinking-sphere", "sinking-cylinder", "lesion-marker", "muscle-fibres"}
+    assert set(SCENARIOS) == {"sinking-sphere", "sinking-cylinder", "fast-cylinder", "lesion-marker",
+                              "muscle-fibres"}
     with pytest.raises(KeyError):
         scenario("nope")
     full = scenario("sinking-sphere")

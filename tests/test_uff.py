@@ -53,11 +53,22 @@ def _assert_same(a: Acquisition, b: Acquisition) -> None:
     assert (a.probe.pitch, a.probe.centre_frequency, a.probe.bandwidth) == (
         b.probe.pitch, b.probe.centre_frequency, b.probe.bandwidth)
     np.testing.assert_array_equal(a.sequence.sines, b.sequence.sines)
+    assert a.sequence.prf == b.sequence.prf
     assert a.truth == b.truth
 
 
 # ---------------------------------------------------------------------------------------------
 # Round trips
+
+
+def test_round_trip_keeps_the_prf(tmp_path: Path) -> None:
+    """The pulse repetition frequency (motion-aware fingerprints need it) travels as the UFF PRF."""
+    probe, seq = _linear()
+    seq = PlaneWaveSequence(seq.sines, prf=2500.0)
+    write_uff(tmp_path / "prf.uff", _frames(probe, seq, n_frames=1))
+    back = read_uff(tmp_path / "prf.uff")[0]
+    assert back.sequence.prf == 2500.0
+    np.testing.assert_allclose(back.sequence.transmit_times(), (np.arange(4) - 1.5) / 2500.0)
 
 
 @pytest.mark.parametrize("setup", [_linear, _matrix], ids=["linear-2d", "matrix-3d"])

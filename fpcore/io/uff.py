@@ -340,6 +340,8 @@ def write_uff(
         _num(cd, "initial_time", float(ref.t0))
         _num(cd, "sound_speed", float(ref.c0))
         _num(cd, "modulation_frequency", 0.0)
+        if ref.sequence.prf is not None:
+            _num(cd, "PRF", float(ref.sequence.prf))
         kw: dict[str, Any] = {}
         if compression:
             kw = {"compression": compression, "chunks": (1, 1) + data.shape[2:]}
@@ -682,7 +684,7 @@ def read_uff(
 
     try:
         probe = Probe(positions, float(pitch), float(fc), float(bw))
-        sequence = PlaneWaveSequence(sines)
+        sequence = PlaneWaveSequence(sines, prf=prf if prf > 0 else None)
     except ValueError as exc:
         raise UFFError(f"{name}: {exc}") from exc
     return [
