@@ -29,6 +29,8 @@ __all__ = [
     "Detection",
     "detect",
     "refine_peak",
+    "border_band",
+    "interior_peaks",
 ]
 
 
@@ -40,18 +42,34 @@ def pfa(c: float | np.ndarray, n_grains: float) -> np.ndarray | float:
     return float(out) if out.ndim == 0 else out
 
 
-def _outside_mask(grid: Grid, centre: np.ndarray, radius: float) -> np.ndarray:
-    mesh = np.meshgrid(*grid.axes, indexing="ij")
+def _mesh(grid: Grid) -> list[np.ndarray]:
+    return np.meshgrid(*grid.axes, indexing="ij")
+
+
+def _outside_mask(grid: Grid, centre: np.ndarray, radius: float, mesh: list[np.ndarray] | None = None) -> np.ndarray:
     c = (centre[0], centre[2]) if grid.ndim == 2 else (centre[0], centre[1], centre[2])
-    d2 = sum((m - ci) ** 2 for m, ci in zip(mesh, c, strict=True))
+    d2 = sum((m - ci) ** 2 for m, ci in zip(mesh or _mesh(grid), c, strict=True))
     return d2 > radius ** 2
 
 
-def _near_border(grid: Grid, pos: np.ndarray, margin: float) -> bool:
-    """True when `pos` (x, y, z) lies within `margin` of the grid's border on an axis it spans."""
-    coords = (pos[0], pos[2]) if grid.ndim == 2 else (pos[0], pos[1], pos[2])
-    return any(a.size > 2 and (c - a[0] < margin or a[-1] - c < margin)
-               for a, c in zip(grid.axes, coords, strict=True))
+def border_band(grid: Grid, margin: float, mesh: list[np.ndarray] | None = None) -> np.ndarray:
+    """Nodes closer than `margin` to the grid's border, on each axis with more than 2 nodes that spans
+    more than 2·margin (a thinner axis has no interior: it is left alone)."""
+    band = np.zeros(grid.shape, dtype=bool)
+    for m, a in zip(mesh or _mesh(grid), grid.axes, strict=True):
+        if a.size > 2 and a[-1] - a[0] > 2 * margin:
+            band |= (m - a[0] < margin) | (a[-1] - m < margin)
+    return band
+
+
+def interior_peaks(gamma: np.ndarray, grid: Grid, margin: float, mesh: list[np.ndarray] | None = None) -> np.ndarray:
+    """Nodes that are local maxima of γ (over their 3^d neighbourhood) and not in the border band: the
+    candidates of a peak inside the region of interest. γ rising towards the border (e.g. under a
+    scattering layer's surface) has its maxima on the border or in the band, not here."""
+    from scipy.ndimage import maximum_filter
+
+    local = gamma >= maximum_filter(gamma, size=3, mode="nearest")
+    return local & ~border_band(grid, margin, mesh)
 
 
 def contrasts(gamma: np.ndarray, grid: Grid, target: np.ndarray, exclusion_radius: float,
@@ -136,13 +154,19 @@ def detect(gamma: np.ndarray, grid: Grid, wavelength: float, aperture: float, ba
     """The n_peaks strongest maxima of a γ-map with contrasts, PFA and Cramér–Rao precision.
 
     Peaks are separated by exclusion_radius (default 2 δρ_D at the peak depth); each contrast is
-    taken against the map outside every accepted peak's exclusion ball. ``interior=True`` skips maxima
-    closer than δρ_D to the grid's border (with their exclusion ball): such a maximum is, most often,
-    the flank of something outside the region of interest — e.g. γ rising towards a scattering layer's
-    surface — not a peak inside it.
+    taken against the map outside every accepted peak's exclusion ball. ``interior=True`` keeps only
+    local maxima of γ farther than δρ_D (at the grid's middle depth) from the border
+    (`interior_peaks`): a maximum on or next to the border is, most often, the flank of something
+    outside the region of interest — e.g. γ rising towards a scattering layer's surface — not a peak
+    inside it (a heuristic: a real target within δρ_D of the border is missed too).
     """
     g = np.asarray(gamma, dtype=np.float32)
     work = g.copy()
+    mesh = _mesh(grid)
+    if interior:
+        mid = 0.5 * (grid.z[0] + grid.z[-1])
+        work[~interior_peaks(g, grid, diffraction_resolution(wavelength, aperture, max(mid, wavelength)),
+                             mesh)] = -np.inf
     found: list[tuple[tuple[int, ...], np.ndarray, float, float]] = []
     axial_res = c0 / (2 * bandwidth)
     while len(found) < n_peaks:
@@ -152,15 +176,14 @@ def detect(gamma: np.ndarray, grid: Grid, wavelength: float, aperture: float, ba
         pos, val = refine_peak(g, grid, idx)
         res = diffraction_resolution(wavelength, aperture, max(pos[2], wavelength))
         rad = exclusion_radius if exclusion_radius is not None else 2 * res
-        work[~_outside_mask(grid, pos, rad)] = -np.inf
-        if interior and _near_border(grid, pos, res):
-            continue
+        work[~_outside_mask(grid, pos, rad, mesh)] = -np.inf
+        work[idx] = -np.inf  # even if refinement moved the peak farther than rad
         found.append((idx, pos, val, rad))
     if not found:
         return []
     outside = np.ones(g.shape, dtype=bool)
-    for _, pos, _, rad in found:  # skipped border maxima stay in the background: they are fog
-        outside &= _outside_mask(grid, pos, rad)
+    for _, pos, _, rad in found:
+        outside &= _outside_mask(grid, pos, rad, mesh)
     g_out = g[outside] if outside.any() else g.ravel()
     mean = float(g_out.mean())
     g_m = float(np.sqrt(np.mean(g_out.astype(np.float64) ** 2)))

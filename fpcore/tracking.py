@@ -14,9 +14,11 @@ while the target's γ stays high near its last position. The tracker therefore:
   carries no carrier phase, so the paper's λ-based axial bound is not reached by this estimator),
   floored at the grid's quantisation variance spacing²/12;
 * assigns candidates to tracks by `scipy.optimize.linear_sum_assignment` on Mahalanobis distances,
-  starts a track from an unassigned interior peak (maxima on the grid's border are the flanks of
-  something outside the region of interest, e.g. γ rising under a suspension's surface; `birth_interior`)
-  whose field-of-view PFA is below `p_birth`, confirms it after
+  starts a track from an unassigned interior peak (`skip_border`: births and gates take local maxima of γ
+  at least δρ_D from the grid's border only — maxima on or next to the border are, most often, the
+  flanks of something outside the region of interest, e.g. γ rising under a suspension's surface; a
+  track whose prediction is itself in that band may still take them) whose field-of-view PFA is below
+  `p_birth`, confirms it after
   `confirm_hits` hits and drops it after `max_misses` consecutive misses;
 * reports confidence = 1 − PFA of the last accepted measurement, decayed by misses;
 * optionally (`integrate_frames` = K > 1) searches the mean of the last K γ-maps: the fog decorrelates
@@ -39,7 +41,15 @@ from filterpy.kalman import KalmanFilter
 from scipy.optimize import linear_sum_assignment
 
 from .grid import Grid
-from .metrics import cramer_rao_precision, detect, diffraction_resolution, pfa, refine_peak
+from .metrics import (
+    border_band,
+    cramer_rao_precision,
+    detect,
+    diffraction_resolution,
+    interior_peaks,
+    pfa,
+    refine_peak,
+)
 
 __all__ = ["TrackerConfig", "TrackState", "Tracker"]
 
@@ -58,7 +68,7 @@ class TrackerConfig:
     max_tracks_per_map: int = 2
     default_dt: float = 0.1  # s, when frames carry no distinct timestamps
     initial_speed_sigma: float = 5e-3  # m/s, prior on a new track's speed
-    birth_interior: bool = True  # births only from maxima off the grid's border (see module doc)
+    skip_border: bool = True  # births and gates take interior local maxima only (see module doc)
     integrate_frames: int = 1  # K: search the mean of the last K γ-maps (see module doc)
 
 
@@ -77,8 +87,11 @@ class TrackState:
     measured: bool
     gamma: float
     pfa: float
-    c_gamma: float  # contrast of the last accepted measurement (0 before any)
-    precision_m: list[float]  # Cramér–Rao σ of the last accepted measurement per axis (x, y, z), m
+    c_gamma: float  # contrast C_γ of the last accepted measurement in its frame (0 before any)
+    # σ of the last accepted measurement per axis (x, y, z), m: the Kalman measurement noise, i.e. the
+    # Cramér–Rao precision δρ_D/√C_γ laterally and c0/(2Δf)/√C_γ axially, floored at the grid's
+    # quantisation spacing/√12; y is 0 on 2D grids (not measured).
+    precision_m: list[float]
 
 
 @dataclass
@@ -117,6 +130,9 @@ class Tracker:
         self._next_id = 1
         self._last_time: float | None = None
         self._mesh = np.meshgrid(*grid.axes, indexing="ij")
+        mid = 0.5 * (grid.z[0] + grid.z[-1])
+        self._margin = diffraction_resolution(wavelength, aperture, max(mid, wavelength))  # border band width
+        self._band = border_band(grid, self._margin, self._mesh)
         self._recent: dict[str, deque[np.ndarray]] = {}
         if self.config.integrate_frames < 1:
             raise ValueError(f"integrate_frames: expected an integer ≥ 1, got {self.config.integrate_frames}")
@@ -128,18 +144,6 @@ class Tracker:
 
     def _r3(self, c: np.ndarray) -> np.ndarray:
         return np.array([c[0], 0.0, c[1]]) if self.nd == 2 else np.asarray(c, float)
-
-    def _near_border(self, c: np.ndarray, margin: float) -> bool:
-        return any(a.size > 2 and (v - a[0] < margin or a[-1] - v < margin)
-                   for a, v in zip(self.grid.axes, c, strict=True))
-
-    def _border_band(self, margin: float) -> np.ndarray:
-        """Nodes closer than `margin` to the border of the grid (on axes with more than 2 nodes)."""
-        band = np.zeros(self.grid.shape, bool)
-        for m, a in zip(self._mesh, self.grid.axes, strict=True):
-            if a.size > 2:
-                band |= (m - a[0] < margin) | (a[-1] - m < margin)
-        return band
 
     def _resolution(self, depth: float) -> tuple[float, float]:
         return diffraction_resolution(self.wavelength, self.aperture, max(depth, self.wavelength)), \
@@ -154,7 +158,8 @@ class Tracker:
         # resolution c0/(2Δf), so δz = c0/(2Δf)/√C_γ (same √C_γ law as eq. loc).
         ax = ax_res / np.sqrt(max(c_gamma, 1e-12))
         # Floor: the peak is read on the grid (parabolic refinement), σ ≥ spacing/√12 per axis.
-        floor = np.asarray(self.grid.spacing) ** 2 / 12
+        floor = np.array([d ** 2 / 12 if a.size > 1 else 0.0 for a, d in zip(self.grid.axes, self.grid.spacing,
+                                                                            strict=True)])
         return np.diag(np.maximum([lat ** 2] * (self.nd - 1) + [ax ** 2], floor))
 
     def _new_filter(self, c: np.ndarray, meas_cov: np.ndarray) -> KalmanFilter:
@@ -203,8 +208,10 @@ class Tracker:
         g = gamma[outside] if outside.any() else gamma.ravel()
         return float(g.mean()), float(np.sqrt(np.mean(g.astype(np.float64) ** 2)))
 
-    def _gated_peak(self, gamma: np.ndarray, tr: _Track) -> tuple[np.ndarray, float, float, np.ndarray] | None:
-        """Maximum of γ inside the track's gate: (coords, γ, number of grains in the gate, S)."""
+    def _gated_peak(self, gamma: np.ndarray, tr: _Track,
+                    allowed: np.ndarray | None) -> tuple[np.ndarray, float, float, np.ndarray] | None:
+        """Maximum of γ inside the track's gate, among the `allowed` nodes (interior local maxima) unless
+        the prediction itself is in the border band: (coords, γ, number of grains in the gate, S)."""
         kf = tr.kf
         depth = kf.x[self.nd - 1]
         res, ax_res = self._resolution(depth)
@@ -214,11 +221,12 @@ class Tracker:
         pred = kf.x[: self.nd]
         d2 = sum((m - ci) ** 2 for m, ci in zip(self._mesh, pred, strict=True))
         inside = d2 <= radius ** 2
-        if self.config.birth_interior and not self._near_border(pred, res):
-            inside &= ~self._border_band(res)  # a border maximum is the flank of something outside
-        if not inside.any():
+        candidates = inside
+        if allowed is not None and not self._band[self.grid.nearest_index(self._r3(pred))]:
+            candidates = inside & allowed  # a border maximum is the flank of something outside
+        if not candidates.any():
             return None
-        masked = np.where(inside, gamma, -np.inf)
+        masked = np.where(candidates, gamma, -np.inf)
         idx = np.unravel_index(int(np.argmax(masked)), gamma.shape)
         pos3, val = refine_peak(gamma, self.grid, idx)
         grain = res * ax_res if self.nd == 2 else res ** 2 * ax_res
@@ -230,8 +238,11 @@ class Tracker:
         """Gate, assign and update the tracks of `name` on `gamma` (the current map or the window's mean)."""
         cfg = self.config
         tracks = [t for t in self.tracks if t.fingerprint == name]
-        gated = [self._gated_peak(gamma, t) for t in tracks]
-        mean, g_m = self._background(gamma, [t.kf.x[: self.nd] for t in tracks])
+        allowed = interior_peaks(gamma, self.grid, self._margin, self._mesh) if cfg.skip_border else None
+        gated = [self._gated_peak(gamma, t, allowed) for t in tracks]
+        centres = [t.kf.x[: self.nd] for t in tracks]
+        _, g_m = self._background(gamma, centres)
+        cur_mean = self._background(current, centres)[0]
         # Candidates: each track's gated maximum; cost = Mahalanobis distance² to each track.
         cands = [g for g in gated if g is not None]
         assigned: dict[int, int] = {}
@@ -252,7 +263,7 @@ class Tracker:
                 self._miss(tr)
                 continue
             c, val, n_grains, _ = cands[j]
-            c_gamma = self._current_contrast(current, c, tracks)
+            c_gamma = self._contrast(current, gamma, c, val, cur_mean)
             p = float(pfa((val / g_m) ** 2 if g_m > 0 else np.inf, n_grains))
             if p > cfg.p_keep:
                 self._miss(tr)
@@ -268,12 +279,13 @@ class Tracker:
             tr.last_pfa = p
             tr.confidence = 1.0 - p
             tr.history.append(tr.kf.x[: self.nd].copy())
-        self._births(name, gamma, tracks)
+        self._births(name, gamma, current, tracks)
 
-    def _current_contrast(self, current: np.ndarray, c: np.ndarray, tracks: list[_Track]) -> float:
-        """C_γ of the current frame's map at `c` (against its mean outside the tracks)."""
-        mean, _ = self._background(current, [t.kf.x[: self.nd] for t in tracks])
-        val = float(current[self.grid.nearest_index(self._r3(c))])
+    def _contrast(self, current: np.ndarray, searched: np.ndarray, c: np.ndarray, val: float, mean: float) -> float:
+        """C_γ of the current frame's map at `c` against its mean `mean` (the searched map's refined
+        value `val` when it is the current map; the nearest node's value otherwise)."""
+        if current is not searched:
+            val = float(current[self.grid.nearest_index(self._r3(c))])
         return val / mean if mean > 0 else np.inf
 
     def _miss(self, tr: _Track) -> None:
@@ -282,12 +294,12 @@ class Tracker:
         tr.confidence *= 0.5
         tr.history.append(tr.kf.x[: self.nd].copy())
 
-    def _births(self, name: str, gamma: np.ndarray, tracks: list[_Track]) -> None:
+    def _births(self, name: str, gamma: np.ndarray, current: np.ndarray, tracks: list[_Track]) -> None:
         cfg = self.config
         if len(tracks) >= cfg.max_tracks_per_map:
             return
         dets = detect(gamma, self.grid, self.wavelength, self.aperture, self.bandwidth, self.c0, name=name,
-                      n_peaks=cfg.max_tracks_per_map, interior=cfg.birth_interior)
+                      n_peaks=cfg.max_tracks_per_map, interior=cfg.skip_border)
         for det in dets:
             if len([t for t in self.tracks if t.fingerprint == name]) >= cfg.max_tracks_per_map:
                 break
@@ -297,10 +309,15 @@ class Tracker:
             res, _ = self._resolution(c[-1])
             if any(np.linalg.norm(t.kf.x[: self.nd] - c) < 4 * res for t in self.tracks if t.fingerprint == name):
                 continue
-            noise = self._noise(det.c_gamma, c[-1])
+            c_gamma = det.c_gamma
+            if current is not gamma:  # the window's mean was searched: C_γ of the current frame (module doc)
+                centres = [np.asarray(d.position_m) for d in dets]
+                mean, _ = self._background(current, [self._coords(p) for p in centres])
+                c_gamma = self._contrast(current, gamma, c, det.gamma_max, mean)
+            noise = self._noise(c_gamma, c[-1])
             kf = self._new_filter(c, noise)
             tr = _Track(self._next_id, name, kf, gamma=det.gamma_max, last_pfa=det.pfa, confidence=1 - det.pfa,
-                        c_gamma=det.c_gamma, precision=np.sqrt(np.diag(noise)))
+                        c_gamma=c_gamma, precision=np.sqrt(np.diag(noise)))
             tr.history.append(c.copy())
             self._next_id += 1
             self.tracks.append(tr)

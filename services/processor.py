@@ -621,7 +621,7 @@ class Processor:
                 state = {k: float(v) for k, v in fp.state.items()
                          if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)}
                 for d in detect(g, grid, lam, acq.probe.aperture[0], band[1] - band[0], acq.c0, name=name,
-                                n_peaks=cfg.n_peaks):
+                                n_peaks=cfg.n_peaks, interior=True):  # as fp locate and the tracker
                     pos = np.asarray(d.position_m, float)
                     named = [t for n, t in truths if n == name]
                     cands = named or [t for _, t in truths]

@@ -33,12 +33,14 @@ confocal image in dB, γ in dB over it, scale bars, each sphere's outline from i
 from __future__ import annotations
 
 import argparse
+import ctypes
 import importlib.util
 import ipaddress
 import logging
 import math
 import os
 import re
+import signal
 import socket
 import subprocess
 import sys
@@ -618,13 +620,25 @@ class LoopbackViewer:
         self.stop()
 
 
+def _die_with_parent() -> None:
+    """In the rerun child (Linux): receive SIGTERM when the parent dies, even by SIGKILL, so a killed
+    `fp view --serve` never leaves a server holding its ports (prctl PR_SET_PDEATHSIG)."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+    except (OSError, AttributeError):
+        pass  # not Linux: the parent's own cleanup stops the child
+
+
 def serve_loopback(rrd: str | Path | None = None, *, port: int = DEFAULT_WEB_PORT,
                    grpc_port: int = DEFAULT_GRPC_PORT, server_memory_limit: str = "1GiB",
                    timeout: float = 30.0) -> LoopbackViewer:
     """Start the Rerun web viewer and its gRPC proxy bound to 127.0.0.1 only, serving ``rrd`` (or, without
     one, whatever an SDK logs to `LoopbackViewer.grpc_url`). Returns once both ports accept connections
     and the child's listening sockets are checked to be loopback (Linux); raises ValueError for a bad or
-    busy port, ChildProcessError when rerun exits or listens elsewhere, TimeoutError after ``timeout`` s."""
+    busy port, ChildProcessError when rerun exits or listens elsewhere, TimeoutError after ``timeout`` s.
+    The child is stopped if the calling *thread* ends (PR_SET_PDEATHSIG): call it from a thread that
+    lives as long as the viewer should."""
     _check_ports(port, grpc_port)
     if rrd is not None and not Path(rrd).is_file():
         raise FileNotFoundError(f"{rrd}: no such .rrd file")
@@ -634,7 +648,7 @@ def serve_loopback(rrd: str | Path | None = None, *, port: int = DEFAULT_WEB_POR
         cmd.append(str(Path(rrd).resolve()))
     log_file = tempfile.TemporaryFile()
     proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=log_file, stderr=subprocess.STDOUT,
-                            env={**os.environ, "NO_COLOR": "1"})
+                            env={**os.environ, "NO_COLOR": "1"}, preexec_fn=_die_with_parent)
     viewer = LoopbackViewer(proc, port, grpc_port, log_file)
     deadline = time.monotonic() + timeout
     while not _listening(proc.pid, {port, grpc_port}):

@@ -175,3 +175,21 @@ def test_tracks_the_simulated_sinking_cylinder() -> None:
         assert e.max() < 1e-3, f"{name}: {e.max() * 1e3:.2f} mm"
         assert np.sqrt(np.mean(e ** 2)) <= 1.5 * np.mean(crs[name]), name
         assert len(ids[name]) == 1
+
+
+@pytest.mark.timeout(20)
+def test_detect_interior_on_coarse_and_thin_grids() -> None:
+    """Regressions: a coarse grid (refinement may move a peak past its exclusion ball) terminates, and
+    an axis thinner than two border bands is left alone rather than emptied."""
+    from fpcore import detect
+
+    rng = np.random.default_rng(4)
+    coarse = Grid.regular((-10e-3, 10e-3), (15e-3, 35e-3), 2e-3)
+    gamma = _fog(rng, coarse.shape) + _ramp_to_top(coarse, 0.9)
+    dets = detect(gamma, coarse, LAM, 20e-3, 0.8e6, 1500.0, n_peaks=3, interior=True, exclusion_radius=0.5e-3)
+    assert all(coarse.z[0] + 1e-3 < d.position_m[2] for d in dets)
+    thin = Grid.regular((-5e-3, 5e-3), (24.7e-3, 25.3e-3), 0.1e-3)
+    target = np.array([1e-3, 0.0, 25e-3])
+    gamma = _fog(rng, thin.shape) + _blob(thin, target, 0.5, 0.3e-3)
+    (det,) = detect(gamma, thin, LAM, 20e-3, 0.8e6, 1500.0, interior=True)
+    assert abs(det.position_m[0] - target[0]) < 0.2e-3
