@@ -315,6 +315,15 @@ def _sinking(a: np.ndarray, b: np.ndarray, n: int, rate: float = 2.0) -> np.ndar
     return (1 - w) * np.asarray(a, float)[None, :] + w * np.asarray(b, float)[None, :]
 
 
+def _granular_suspension(**overrides: Any) -> ScatteringLayer:
+    """The vibrated granular suspension of the paper's first experiment (Supplementary S1): surface 16 mm
+    below the array, ℓ_s = 1.8 mm, ℓ_a = 8 mm, 50 µm scatterer motion between frames; `overrides` win."""
+    params: dict[str, Any] = dict(z_surface=16e-3, ls=1.8e-3, la=8e-3, density=1900.0, sound_speed=1600.0,
+                                  frame_displacement=50e-6, roughness=0.15e-3, attenuation_depth="front")
+    params.update(overrides)
+    return ScatteringLayer(**params)
+
+
 def sinking_sphere(quick: bool = False, seed: int = 0, n_frames: int = 32, noise_rms: float = 2e-4,
                    sink: tuple[float, float] = (8e-3, 8.6e-3), calibration: str = "nominal",
                    **layer_overrides: Any) -> Scenario:
@@ -345,11 +354,7 @@ def sinking_sphere(quick: bool = False, seed: int = 0, n_frames: int = 32, noise
     seq = PlaneWaveSequence.uniform_sines(5, 0.2, ny=5)
     band = Band(1.8e6, 2.6e6)
     window = TimeWindow.covering(fs, 20e-6, 75e-6, guard=35e-6)
-    params: dict[str, Any] = dict(z_surface=16e-3, ls=1.8e-3, la=8e-3, density=1900.0, sound_speed=1600.0,
-                                  frame_displacement=50e-6, roughness=0.15e-3, attenuation_depth="front",
-                                  gain=2.5)
-    params.update(layer_overrides)
-    layer = ScatteringLayer(**params)
+    layer = _granular_suspension(**{"gain": 2.5, **layer_overrides})
     zs = layer.z_surface
     if calibration not in ("nominal", "axis"):
         raise ValueError(f"calibration: expected 'nominal' or 'axis', got {calibration!r}")
@@ -385,11 +390,7 @@ def sinking_cylinder(quick: bool = False, seed: int = 0, n_frames: int = 32, noi
     seq = PlaneWaveSequence.uniform_sines(11, 0.2)
     band = Band(1.8e6, 2.6e6)
     window = TimeWindow.covering(10.4e6, 20e-6, 75e-6, guard=35e-6)
-    params: dict[str, Any] = dict(z_surface=16e-3, ls=1.8e-3, la=8e-3, density=1900.0, sound_speed=1600.0,
-                                  frame_displacement=50e-6, roughness=0.15e-3, attenuation_depth="front",
-                                  gain=1.0)
-    params.update(layer_overrides)
-    layer = ScatteringLayer(**params)
+    layer = _granular_suspension(**{"gain": 1.0, **layer_overrides})
     zs = layer.z_surface
     p1 = _sinking(np.array([-4.75e-3, 0.0, zs + sink[0]]), np.array([-5.2e-3, 0.0, zs + sink[1]]), n_frames)
     p2 = np.array([[4.75e-3, 0.0, zs + 7.5e-3]])
