@@ -6,7 +6,7 @@ Cramér–Rao precision of the track's measurements (paper eq. loc: δρ_L = δ�
 δz_L = λ/(4√2π√C_γ)), the ids, the acceptance checks of issue 5, and writes a PNG of the tracks
 against the truth over the mean confocal image (with zooms and the error per frame) and a JSON.
 
-    python bench/validate_tracking.py                                   # 3D quick, default ROI
+    python bench/validate_tracking.py                                   # 3D quick, default ROI (z 20–31 mm)
     python bench/validate_tracking.py --z 18mm:32mm                     # ROI reaching under the surface
     python bench/validate_tracking.py --scenario sinking-cylinder       # 2D analogue (argmax fails often)
 
@@ -30,16 +30,10 @@ import fpcore
 from fpcore.metrics import cramer_rao_precision, diffraction_resolution
 from fpcore.simulate import scenario
 from fpcore.tracking import Tracker, TrackerConfig
+from services.units import parse_length, parse_range
 
 DEFAULT_X = (-11e-3, 11e-3)
 DEFAULT_Z = (20e-3, 31e-3)
-
-
-def _range_mm(text: str) -> tuple[float, float]:
-    a, b = (float(v.strip().removesuffix("mm")) * 1e-3 for v in text.split(":"))
-    if not b > a:
-        raise argparse.ArgumentTypeError(f"expected A:B in mm with B > A, got {text!r}")
-    return a, b
 
 
 def run(name: str, quick: bool, n_frames: int | None, z_range: tuple[float, float], spacing: float | None,
@@ -130,75 +124,23 @@ def summarise(res: dict[str, Any]) -> dict[str, Any]:
 
 
 def figure(path: str | Path, res: dict[str, Any]) -> None:
-    """(a) mean confocal image (dB) with truth, tracks, failed argmax picks and target outlines;
-    (b) one zoom per target; (c) errors per frame against the Cramér–Rao radius."""
-    import matplotlib
+    """The tracks figure of `services.figures.tracks_over_confocal`, with the argmax picks and the
+    Cramér–Rao radius of each track."""
+    from services.figures import tracks_over_confocal
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.patches import Circle
-
-    grid, conf, rows = res["grid"], res["confocal"], res["rows"]
+    frames: dict[int, dict[str, Any]] = {}
+    for t, rs in res["rows"].items():
+        for r in rs:
+            h = frames.setdefault(r["frame"], {"frame_index": r["frame"], "tracks": [], "truth": [], "argmax": []})
+            h["truth"].append({"name": t, "position_m": r["truth_m"], "diameter_m": res["diameters_m"][t]})
+            h["argmax"].append({"name": t, "position_m": r["argmax_m"]})
+            if r["track_m"] is not None:
+                h["tracks"].append({"id": r["track_id"], "fingerprint": t, "position_m": r["track_m"],
+                                    "cr_radius_m": r["cr_radius_m"]})
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    sec = conf[:, grid.nearest_index(np.zeros(3))[1], :] if grid.ndim == 3 else conf
-    img = 10 * np.log10(sec.T / sec.max() + 1e-12)
-    ext = [grid.x[0] * 1e3, grid.x[-1] * 1e3, grid.z[-1] * 1e3, grid.z[0] * 1e3]
-    names = list(rows)
-    colours = dict(zip(names, ["tab:red", "tab:green", "tab:orange", "tab:purple"], strict=False))
-    fig = plt.figure(figsize=(15, 8.5), constrained_layout=True)
-    gs = fig.add_gridspec(2, 1 + len(names), height_ratios=[1.4, 1])
-    ax0 = fig.add_subplot(gs[0, 0])
-    zooms = [fig.add_subplot(gs[0, 1 + k]) for k in range(len(names))]
-    ax_err = fig.add_subplot(gs[1, :])
-
-    def path_mm(rs: list[dict[str, Any]], key: str) -> np.ndarray:
-        return np.array([r[key] for r in rs if r[key] is not None]).reshape(-1, 3) * 1e3
-
-    for ax in [ax0, *zooms]:
-        ax.imshow(img, extent=ext, cmap="gray", vmin=-25, vmax=0, aspect="equal")
-        for t, rs in rows.items():
-            c = colours[t]
-            tru, trk, arg = path_mm(rs, "truth_m"), path_mm(rs, "track_m"), path_mm(rs, "argmax_m")
-            ax.add_patch(Circle((tru[0, 0], tru[0, 2]), res["diameters_m"][t] / 2 * 1e3, fill=False, ec=c,
-                                ls=":", lw=1))
-            ax.plot(tru[:, 0], tru[:, 2], "-", color="cyan", lw=2.5, alpha=0.8)
-            ax.plot(trk[:, 0], trk[:, 2], ".-", color=c, ms=4, lw=1, label=f"{t} track")
-            ax.plot(arg[:, 0], arg[:, 2], "x", color=c, ms=5, mew=1, alpha=0.7, label=f"{t} per-frame argmax")
-    ax0.set_xlim(ext[0], ext[1])
-    ax0.set_ylim(ext[2], ext[3])
-    ax0.plot([], [], "-", color="cyan", lw=2.5, label="truth")
     surface = f", suspension surface at z = {res['z_surface_m'] * 1e3:.0f} mm" if res["z_surface_m"] else ""
-    ax0.set_title(f"(a) {res['scenario']}: tracks, truth, per-frame argmax (×)\nover the mean confocal image"
-                  f"{' at y = 0' if grid.ndim == 3 else ''} (dB){surface};\ndotted: target outline at frame 0",
-                  fontsize=9)
-    ax0.set_xlabel("x (mm)")
-    ax0.set_ylabel("z (mm)")
-    ax0.legend(loc="lower left", fontsize=7)
-    for ax, t in zip(zooms, names, strict=True):
-        tru = path_mm(rows[t], "truth_m")
-        cx, cz = tru[:, 0].mean(), tru[:, 2].mean()
-        half = max(1.0, 0.75 * float(np.ptp(tru[:, [0, 2]], axis=0).max()) + 0.6)
-        ax.set_xlim(cx - half, cx + half)
-        ax.set_ylim(cz + half, cz - half)
-        ax.set_title(f"(b) zoom on {t} (centre; {len(tru)} frames)", fontsize=9)
-        ax.set_xlabel("x (mm)")
-        ax.set_ylabel("z (mm)")
-    for t, rs in rows.items():
-        c = colours[t]
-        f = [r["frame"] for r in rs]
-        te = [r["track_err_m"] * 1e3 if r["track_err_m"] is not None else np.nan for r in rs]
-        ae = [r["argmax_err_m"] * 1e3 for r in rs]
-        cr = [r["cr_radius_m"] * 1e3 if r["cr_radius_m"] is not None else np.nan for r in rs]
-        ax_err.semilogy(f, te, "o-", color=c, ms=4, label=f"{t}: track error")
-        ax_err.semilogy(f, ae, "x:", color=c, ms=6, label=f"{t}: per-frame argmax error")
-        ax_err.semilogy(f, cr, "-", color=c, lw=3, alpha=0.3, label=f"{t}: Cramér–Rao radius")
-    ax_err.axhline(1.0, color="k", ls="--", lw=0.8, label="1 mm")
-    ax_err.set_xlabel("frame")
-    ax_err.set_ylabel("distance to truth (mm)")
-    ax_err.set_title("(c) errors per frame", fontsize=9)
-    ax_err.legend(fontsize=7, ncol=3, loc="upper left")
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    tracks_over_confocal(path, res["grid"], res["confocal"], [frames[i] for i in sorted(frames)],
+                         title=f"{res['scenario']}{surface}")
 
 
 def main() -> None:
@@ -206,9 +148,12 @@ def main() -> None:
     ap.add_argument("--scenario", default="sinking-sphere", choices=("sinking-sphere", "sinking-cylinder"))
     ap.add_argument("--full", action="store_true", help="full-size scenario (slow in 3D)")
     ap.add_argument("--frames", type=int, default=None, help="number of frames (default: all)")
-    ap.add_argument("--z", type=_range_mm, default=DEFAULT_Z, help="ROI depth range A:B in mm (default 20:31)")
-    ap.add_argument("--spacing", type=float, default=None, help="grid spacing in mm (default 0.25 in 3D, 0.1 in 2D)")
-    ap.add_argument("--sink", type=_range_mm, default=None, help="settling range below the surface A:B in mm")
+    ap.add_argument("--z", type=lambda t: parse_range(t, "--z"), default=DEFAULT_Z,
+                    help="ROI depth range A:B with units (default 20mm:31mm)")
+    ap.add_argument("--spacing", type=lambda t: parse_length(t, "--spacing"), default=None,
+                    help="grid spacing with units (default 0.25mm in 3D, 0.1mm in 2D)")
+    ap.add_argument("--sink", type=lambda t: parse_range(t, "--sink"), default=None,
+                    help="settling range below the surface A:B with units, e.g. 8mm:9.5mm")
     ap.add_argument("--gain", type=float, default=None, help="multiple-scattering background gain")
     ap.add_argument("--integrate", type=int, default=1, help="tracker: search the mean of the last K γ-maps")
     ap.add_argument("--png", default=None, help="figure path (default out/tracking-<scenario>.png)")
@@ -219,7 +164,7 @@ def main() -> None:
         overrides["sink"] = args.sink
     if args.gain is not None:
         overrides["gain"] = args.gain
-    res = run(args.scenario, not args.full, args.frames, args.z, args.spacing and args.spacing * 1e-3, overrides,
+    res = run(args.scenario, not args.full, args.frames, args.z, args.spacing, overrides,
               args.integrate)
     summary = summarise(res)
     png = args.png or f"out/tracking-{args.scenario}.png"

@@ -92,10 +92,17 @@ class Fingerprint:
         """F_θθ(r) = S(Δr) ∘ F(r0) ∘ S(Δr), S = e^{-ik(s·Δρ + cΔz)} (paper eq. BF, no apodization)."""
         dr = np.asarray(r, dtype=float) - self.r0
         k = 2 * np.pi * self.freqs / self.c0
-        def ramp(s: np.ndarray) -> np.ndarray:
-            c = np.sqrt(1 - s[:, 0] ** 2 - s[:, 1] ** 2)
-            return np.exp(-1j * k[:, None] * (s[:, 0] * dr[0] + s[:, 1] * dr[1] + c * dr[2])[None, :])
-        return (ramp(self.out_sines)[:, :, None] * self.data * ramp(self.in_sines)[:, None, :]).astype(np.complex64)
+        ramp_out = np.exp(-1j * k[:, None] * _path(self.out_sines, dr)[None, :, 0])
+        ramp_in = np.exp(-1j * k[:, None] * _path(self.in_sines, dr)[None, :, 0])
+        return (ramp_out[:, :, None] * self.data * ramp_in[:, None, :]).astype(np.complex64)
+
+
+def _path(sines: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+    """s·Δρ + cΔz of each direction (N_s,) for each shift (M, 3) or (3,): (N_s, M) — the extra path of
+    the plane wave s when the target moves by the shift (paper eq. BF's phase, over k)."""
+    d = np.atleast_2d(np.asarray(shifts, dtype=float))
+    c = np.sqrt(1 - sines[:, 0] ** 2 - sines[:, 1] ** 2)
+    return sines[:, :1] * d[None, :, 0] + sines[:, 1:2] * d[None, :, 1] + c[:, None] * d[None, :, 2]
 
 
 def moving_fingerprint(fp: Fingerprint, velocity: np.ndarray, transmit_times: np.ndarray) -> Fingerprint:
@@ -108,14 +115,9 @@ def moving_fingerprint(fp: Fingerprint, velocity: np.ndarray, transmit_times: np
         raise ValueError(f"transmit_times: expected {fp.in_sines.shape[0]} values (one per transmit), "
                          f"got {tau.size}")
     k = 2 * np.pi * fp.freqs / fp.c0
-    delta = tau[:, None] * v[None, :]  # (N_i, 3)
-    c_in = np.sqrt(1 - fp.in_sines[:, 0] ** 2 - fp.in_sines[:, 1] ** 2)
-    ramp_in = np.exp(-1j * k[:, None] * (fp.in_sines[:, 0] * delta[:, 0] + fp.in_sines[:, 1] * delta[:, 1]
-                                         + c_in * delta[:, 2])[None, :])  # (N_f, N_i)
-    c_out = np.sqrt(1 - fp.out_sines[:, 0] ** 2 - fp.out_sines[:, 1] ** 2)
-    phase_out = fp.out_sines[:, :1] @ delta[:, :1].T + fp.out_sines[:, 1:2] @ delta[:, 1:2].T \
-        + c_out[:, None] * delta[None, :, 2]  # (N_o, N_i): s_o·δ_j
-    ramp_out = np.exp(-1j * k[:, None, None] * phase_out[None, :, :])  # (N_f, N_o, N_i)
+    delta = tau[:, None] * v[None, :]  # (N_i, 3): where the target is when transmit j fires
+    ramp_out = np.exp(-1j * k[:, None, None] * _path(fp.out_sines, delta)[None])  # (N_f, N_o, N_i)
+    ramp_in = np.exp(-1j * k[:, None] * np.diagonal(_path(fp.in_sines, delta))[None, :])  # (N_f, N_i)
     data = (fp.data * ramp_out * ramp_in[:, None, :]).astype(np.complex64)
     state = dict(fp.state, velocity_m_s=[float(x) for x in v])
     return Fingerprint(data, fp.freqs, fp.out_sines, fp.in_sines, fp.c0, fp.r0, name=fp.name,

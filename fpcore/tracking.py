@@ -241,8 +241,8 @@ class Tracker:
         allowed = interior_peaks(gamma, self.grid, self._margin, self._mesh) if cfg.skip_border else None
         gated = [self._gated_peak(gamma, t, allowed) for t in tracks]
         centres = [t.kf.x[: self.nd] for t in tracks]
-        _, g_m = self._background(gamma, centres)
-        cur_mean = self._background(current, centres)[0]
+        mean, g_m = self._background(gamma, centres)
+        cur_mean = mean if current is gamma else self._background(current, centres)[0]
         # Candidates: each track's gated maximum; cost = Mahalanobis distance² to each track.
         cands = [g for g in gated if g is not None]
         assigned: dict[int, int] = {}

@@ -231,13 +231,15 @@ def gamma_over_confocal(path: str | Path, grid: Grid, confocal: np.ndarray, gamm
                           title=title, threshold=threshold)
 
 
-def tracks_over_confocal(path: str | Path, grid: Grid, confocal: np.ndarray, history: list[dict]) -> None:
+def tracks_over_confocal(path: str | Path, grid: Grid, confocal: np.ndarray, history: list[dict],
+                         title: str = "") -> None:
     """Tracks against the truth over the confocal image (dB; 3D: the x–z section at y = 0), with one zoom
     per target and the distance to the truth per frame (issue 5 figure).
 
     ``history``: one entry per frame, ``{"frame_index", "tracks": [{"id", "fingerprint", "position_m"}],
     "truth": [{"name", "position_m", "diameter_m"}]}``; a track is compared with the truth of the target
-    its fingerprint is named after.
+    its fingerprint is named after. Optional: a track's ``"cr_radius_m"`` (drawn under its error) and a
+    frame's ``"argmax": [{"name", "position_m"}]``, the per-frame global maxima (× and their error).
     """
     import matplotlib
 
@@ -253,10 +255,15 @@ def tracks_over_confocal(path: str | Path, grid: Grid, confocal: np.ndarray, his
     colours = {n: HUES[k % len(HUES)][1] for k, n in enumerate(names)}
     truth = {n: np.array([[h["frame_index"], *t["position_m"]] for h in history for t in h.get("truth", [])
                           if t["name"] == n]).reshape(-1, 4) for n in names}
+    argmax = {n: np.array([[h["frame_index"], *a["position_m"]] for h in history for a in h.get("argmax", [])
+                           if a["name"] == n]).reshape(-1, 4) for n in names}
     tracks: dict[tuple[str, int], list[list[float]]] = {}
+    cr: dict[tuple[str, int], list[tuple[float, float]]] = {}
     for h in history:
         for tr in h["tracks"]:
             tracks.setdefault((tr["fingerprint"], tr["id"]), []).append([h["frame_index"], *tr["position_m"]])
+            if tr.get("cr_radius_m") is not None:
+                cr.setdefault((tr["fingerprint"], tr["id"]), []).append((h["frame_index"], tr["cr_radius_m"]))
     fig = plt.figure(figsize=(5 + 4 * len(names), 8), constrained_layout=True)
     gs = fig.add_gridspec(2, 1 + len(names), height_ratios=[1.4, 1])
     ax0 = fig.add_subplot(gs[0, 0])
@@ -276,12 +283,16 @@ def tracks_over_confocal(path: str | Path, grid: Grid, confocal: np.ndarray, his
         for (n, tid), pts in tracks.items():
             p = np.array(pts)
             ax.plot(p[:, 1] * MM, p[:, 3] * MM, ".-", color=colours[n], ms=4, lw=1, label=f"track {tid} ({n})")
+        for n, a in argmax.items():
+            if a.size:
+                ax.plot(a[:, 1] * MM, a[:, 3] * MM, "x", color=colours[n], ms=5, alpha=0.7,
+                        label=f"per-frame argmax ({n})")
     ax0.set_xlim(ext[0], ext[1])
     ax0.set_ylim(ext[2], ext[3])
     ax0.plot([], [], "-", color="cyan", lw=2.5, label="truth")
     ax0.legend(loc="lower left", fontsize=7)
     ax_err.set_title("distance of each track to its target's truth, per frame", fontsize=9)
-    ax0.set_title("tracks and truth (cyan, ○ last) over the confocal\nimage"
+    ax0.set_title((f"{title}\n" if title else "") + "tracks and truth (cyan, ○ last) over the confocal\nimage"
                   f"{' at y = 0' if grid.ndim == 3 else ''} (dB); dotted: target outline", fontsize=9)
     for ax in [ax0, *zooms]:
         ax.set_xlabel("x (mm)")
@@ -303,6 +314,17 @@ def tracks_over_confocal(path: str | Path, grid: Grid, confocal: np.ndarray, his
             e = np.array(err)
             ax_err.semilogy(e[:, 0], np.maximum(e[:, 1], 1e-3), "o-", color=colours[n], ms=4,
                             label=f"track {tid} ({n})")
+        if (n, tid) in cr:
+            c = np.array(cr[(n, tid)])
+            ax_err.semilogy(c[:, 0], c[:, 1] * MM, "-", color=colours[n], lw=3, alpha=0.3,
+                            label=f"Cramér–Rao radius ({n})")
+    for n, a in argmax.items():
+        tru = {int(f): r for f, *r in truth[n]} if truth[n].size else {}
+        err = [(f, np.linalg.norm(np.array(r) - tru[int(f)]) * MM) for f, *r in a if int(f) in tru]
+        if err:
+            e = np.array(err)
+            ax_err.semilogy(e[:, 0], np.maximum(e[:, 1], 1e-3), "x:", color=colours[n], ms=6,
+                            label=f"per-frame argmax ({n})")
     ax_err.axhline(1.0, color="k", ls="--", lw=0.8, label="1 mm")
     ax_err.set_xlabel("frame")
     ax_err.set_ylabel("distance to truth (mm)")

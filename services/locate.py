@@ -122,12 +122,10 @@ def run_locate(args: argparse.Namespace) -> int:
         from fpcore import output_sines
         out_sines = output_sines(first.probe, first.c0, band[1], n=args.n_out)
     imager = Imager(ImagingConfig(grid, band, args.n_freq, out_sines))
-    fp_diameter: float | None = None
     if args.calibration:
         cal = read_uff(args.calibration, args.dataset)[0]
         check_calibration(cal, first)
         r0, diameter = _r0(args, cal)
-        fp_diameter = diameter
         fp = from_calibration(cal, r0, imager.out_sines_for(cal), band, args.n_freq, diameter=diameter,
                               svd_threshold=args.svd_threshold, name=Path(args.calibration).stem)
         console.print(f"fingerprint from {args.calibration}: r0 = {np.round(r0 * 1e3, 2)} mm, N_S = {fp.n_s:.1f}, "
@@ -176,7 +174,7 @@ def run_locate(args: argparse.Namespace) -> int:
         truth = min(truths, key=lambda t: float(np.linalg.norm(t - near))) if truths else None
         gamma_over_confocal(args.png, grid, imager.confocal(pw), gamma, np.array(dets[0].position_m), truth=truth,
                             title=f"{Path(args.data).name} frame {acq.frame_index}: C_γ = {dets[0].c_gamma:.1f}, "
-                                  f"PFA = {dets[0].pfa:.1e}", name=fp.name, diameter=fp_diameter or None,
+                                  f"PFA = {dets[0].pfa:.1e}", name=fp.name, diameter=fp.state.get("diameter_m") or None,
                             c_gamma=dets[0].c_gamma)
         console.print(f"wrote {args.png}")
     return 0
