@@ -306,25 +306,21 @@ def tracks_over_confocal(path: str | Path, grid: Grid, confocal: np.ndarray, his
         ax.set_xlim(centre[0] - half, centre[0] + half)
         ax.set_ylim(centre[1] + half, centre[1] - half)
         ax.set_title(f"zoom on {n}", fontsize=9)
+    def plot_errors(n: str, rows: np.ndarray, style: str, label: str) -> None:
+        """Distance (mm) of rows [frame, x, y, z] to target n's truth in the same frame."""
+        tru = {int(f): r for f, *r in truth[n]}
+        e = np.array([(f, np.linalg.norm(np.array(r) - tru[int(f)]) * MM) for f, *r in rows if int(f) in tru])
+        if e.size:
+            ax_err.semilogy(e[:, 0], np.maximum(e[:, 1], 1e-3), style, color=colours[n], ms=5, label=label)
+
     for (n, tid), pts in tracks.items():
-        p = np.array(pts)
-        tru = {int(f): r for f, *r in truth[n]} if truth[n].size else {}
-        err = [(f, np.linalg.norm(np.array(r) - tru[int(f)]) * MM) for f, *r in p if int(f) in tru]
-        if err:
-            e = np.array(err)
-            ax_err.semilogy(e[:, 0], np.maximum(e[:, 1], 1e-3), "o-", color=colours[n], ms=4,
-                            label=f"track {tid} ({n})")
+        plot_errors(n, np.array(pts), "o-", f"track {tid} ({n})")
         if (n, tid) in cr:
             c = np.array(cr[(n, tid)])
             ax_err.semilogy(c[:, 0], c[:, 1] * MM, "-", color=colours[n], lw=3, alpha=0.3,
                             label=f"Cramér–Rao radius ({n})")
     for n, a in argmax.items():
-        tru = {int(f): r for f, *r in truth[n]} if truth[n].size else {}
-        err = [(f, np.linalg.norm(np.array(r) - tru[int(f)]) * MM) for f, *r in a if int(f) in tru]
-        if err:
-            e = np.array(err)
-            ax_err.semilogy(e[:, 0], np.maximum(e[:, 1], 1e-3), "x:", color=colours[n], ms=6,
-                            label=f"per-frame argmax ({n})")
+        plot_errors(n, a, "x:", f"per-frame argmax ({n})")
     ax_err.axhline(1.0, color="k", ls="--", lw=0.8, label="1 mm")
     ax_err.set_xlabel("frame")
     ax_err.set_ylabel("distance to truth (mm)")
