@@ -5,7 +5,7 @@
 Per geometry: set-up time, first call (numba cache load or compile), time per map (median after a
 warm-up), speed-up over GridTransform measured in the same run, error against direct_sum at random
 nodes plus the map's peak (relative to the map maximum), and peak memory (tracemalloc, numpy buffers;
-ru_maxrss for the whole process). Weights: speckle-like random complex64. DESIGN §5.
+ru_maxrss for the whole process). Weights: speckle-like random complex64. docs/design.md §5.
 
 Geometries (realistic, sines on one lattice δs):
 * 2D: c0 = 1540 m/s, 60 frequencies over 5.5–9.5 MHz, 128 output sines spanning ±0.9, 31 transmit

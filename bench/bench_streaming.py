@@ -1,6 +1,6 @@
 """Streaming benchmark: sustained frames/s and publish → detection latency of the whole pipeline
 (publisher + processor + recorder in one process over zenoh on loopback; services.publisher.run_pipeline),
-with the share of processor time in each stage (DESIGN.md §7, §8: speed is measured by scripts).
+with the share of processor time in each stage (docs/design.md §7, §8: speed is measured by scripts).
 
     python bench/bench_streaming.py                 # 3D sinking-sphere (quick) and 2D muscle-fibres (quick)
     python bench/bench_streaming.py --only 2d --frames 40 --no-record

@@ -69,7 +69,7 @@ def mean_free_path() -> None:
 
 def _pw_confocal(h: np.ndarray, probe: Probe, sines: np.ndarray, freqs: np.ndarray, c0: float,
                  spec: np.ndarray, pixels: np.ndarray, s_out: np.ndarray) -> np.ndarray:
-    """Confocal intensity (DESIGN §4.3) with a Hann-apodised receive aperture, at given pixels (P, 3)."""
+    """Confocal intensity (docs/design.md §4.3) with a Hann-apodised receive aperture, at given pixels (P, 3)."""
     k = 2 * np.pi * freqs / c0
     u = probe.positions
     ax = (np.ptp(u[:, 0]) + probe.pitch) / 2

@@ -1,7 +1,7 @@
 """fpcore — the fingerprint method, exact and fast (numerics only: no network, no services).
 
 Find, localise and characterise targets in strongly scattering media from plane-wave reflection
-matrices with the fingerprint likelihood index γ (Le Ber et al.; see DESIGN.md §4 for conventions).
+matrices with the fingerprint likelihood index γ (Le Ber et al.; see docs/design.md §4 for conventions).
 
     >>> import fpcore
     >>> imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=(1.8e6, 2.6e6), n_freq=40))

@@ -1,6 +1,6 @@
 """Acquisition data model: probe, plane-wave sequence, RF frame and its frequency-domain views.
 
-Conventions (DESIGN.md §3, §4.1–4.2):
+Conventions (docs/design.md §3, §4.1–4.2):
 
 * Element positions are metres, shape (N_u, 3); a linear array has y = 0.
 * A plane wave is described by its direction sines (s_x, s_y); the transmit delay on element u is
@@ -8,7 +8,7 @@ Conventions (DESIGN.md §3, §4.1–4.2):
   when the wavefront crosses the array origin.
 * RF data R(u_out, θ_in, t) is real, shape (N_u, N_θ, N_t), sample n at t = t0 + n/fs.
 * Spectrum: R(f) = ∫ R(t) e^{-i2πft} dt (paper eq. before Fig. 1; numpy's forward FFT sign).
-* Output projection to plane waves: R_θθ(f) = P_θu(f) R_uθ(f), P_θu = exp(-i k s_θ·u) (DESIGN §4.2).
+* Output projection to plane waves: R_θθ(f) = P_θu(f) R_uθ(f), P_θu = exp(-i k s_θ·u) (docs/design.md §4.2).
 """
 
 from __future__ import annotations
@@ -204,7 +204,7 @@ class Acquisition:
         return max(fc - bw / 2, 0.0), min(fc + bw / 2, self.fs / 2)
 
     def spectrum(self, f_min: float, f_max: float, n_freq: int | None = None, pad: int = 2) -> Spectrum:
-        """Band [f_min, f_max] of R(f) = ∫ R(t) e^{-i2πft} dt (paper eq. 0, DESIGN §4.1).
+        """Band [f_min, f_max] of R(f) = ∫ R(t) e^{-i2πft} dt (paper eq. 0, docs/design.md §4.1).
 
         Frequency sampling sets the unambiguous delay window 1/Δf of every map: a fingerprint shifted
         so that its echo ends past the window wraps onto the record's start. With n_freq None the record
@@ -267,7 +267,7 @@ class PlaneWaveData:
 
 def output_sines(probe: Probe, c0: float, f_max: float, n: int | None = None,
                  s_max: float | None = None) -> np.ndarray:
-    """Output directions sampling the array's angular spectrum (DESIGN §4.2).
+    """Output directions sampling the array's angular spectrum (docs/design.md §4.2).
 
     Per lateral dimension, n sines evenly spread over [-s_max, s_max] (default n = elements along
     that dimension, s_max = min(0.95, c0/(2 pitch f_c)) — the spatial Nyquist limit of the pitch).
@@ -302,7 +302,7 @@ def _tensor_axes(sines: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
 def to_plane_waves(spec: Spectrum, out_sines: np.ndarray) -> PlaneWaveData:
-    """R_θθ(f) = P_θu(f) R_uθ(f), P_θu = exp(-i k s_θ·u) (DESIGN §4.2, paper Methods).
+    """R_θθ(f) = P_θu(f) R_uθ(f), P_θu = exp(-i k s_θ·u) (docs/design.md §4.2, paper Methods).
 
     For a regular matrix array and a tensor grid of output sines the projection is separable
     (x then y), which costs N_x + N_y instead of N_x N_y per coefficient.

@@ -3,7 +3,7 @@
 R(u, θ, f) = Σ_p a_p S(f) e^{-i2πf(τ_in(θ, r_p) + |u − r_p|/c0 − t0)} / √|u − r_p|
 
 with the plane-wave transmit delay τ_in = (x s_x + y s_y + z c)/c0 (paper, Methods "Acquisition of the
-reflection matrix"), the outgoing return path and the numpy FFT sign (DESIGN.md §4.1); S(f) is a
+reflection matrix"), the outgoing return path and the numpy FFT sign (docs/design.md §4.1); S(f) is a
 Gaussian transducer band. Only the band's bins are computed. It is the reference for sign and position
 tests and the engine of the quick offline demo; `fpcore.simulate` holds the full physical simulator.
 """

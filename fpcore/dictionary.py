@@ -1,4 +1,4 @@
-"""Dictionaries of fingerprints over target states q and the per-pixel argmax (DESIGN.md §4.12).
+"""Dictionaries of fingerprints over target states q and the per-pixel argmax (docs/design.md §4.12).
 
 q_opt(r) = argmax_q γ(r, q) (paper eq. after Fig. 4: fibre orientation α and length L per pixel).
 
@@ -59,7 +59,7 @@ class ModelFamily:
 
 
 def mirror_family(lengths: np.ndarray, alphas: np.ndarray, azimuth: float = 0.0) -> ModelFamily:
-    """Mirrors of every (α, L): F = L sinc(K·t̂ L/2π) (paper, Methods; DESIGN §4.5)."""
+    """Mirrors of every (α, L): F = L sinc(K·t̂ L/2π) (paper, Methods; docs/design.md §4.5)."""
     states = [{"alpha_rad": float(a), "length_m": float(L)} for a in alphas for L in lengths]
     def resp(K3: np.ndarray, q: dict) -> np.ndarray:
         return mirror_response(K3, q["length_m"], q["alpha_rad"], azimuth)

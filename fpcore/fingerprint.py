@@ -1,7 +1,7 @@
 """Fingerprint operators F_θθ(r0, f): from a calibration acquisition or from a numerical model.
 
 Calibration pipeline (paper, Methods "Fingerprint operator based on a calibration measurement";
-DESIGN.md §4.4):
+docs/design.md §4.4):
 
 1. time gate after the ballistic echo of the target's front face (paper eq. specular_filter):
    R0'(u, θ, t) = R0(u, θ, t) H(t − τ_in(θ, r0) − τ_out(u, r0) − δt), δt ≈ 1/Δf, with
@@ -12,12 +12,12 @@ DESIGN.md §4.4):
 4. angular filter A(θ, r0): drop plane-wave components whose ray through the target misses the array
    (paper Supplementary S2, Fig. S9).
 
-Numerical fingerprints (paper, Methods "Numerical computation"; DESIGN §4.5): for a reflectivity
+Numerical fingerprints (paper, Methods "Numerical computation"; docs/design.md §4.5): for a reflectivity
 Γ(q) on points r', F_θθ(o, i, f) = Σ_{r'} Γ(r') e^{-iK·r'}, K = k(s_o + s_i, c_o + c_i) — the plane-wave
 form of G Γ Gᵀ P†. A straight mirror of length L along t̂ centred at r_c has the closed form
 F = L sinc(K·t̂ L / 2π) e^{-iK·r_c} (np.sinc(x) = sin πx / πx).
 
-Virtual shift (paper eq. BF; DESIGN §4.6): F(r) = S ∘ F(r0) ∘ S with S = P(θ, Δr) = e^{-ik(s·Δρ + cΔz)}
+Virtual shift (paper eq. BF; docs/design.md §4.6): F(r) = S ∘ F(r0) ∘ S with S = P(θ, Δr) = e^{-ik(s·Δρ + cΔz)}
 (the sign that makes γ computed on R = R0 peak at r0 with numpy's FFT; tests/test_fingerprint.py).
 The shift is applied without apodization, so ‖F(r)‖ = ‖F(r0)‖: the angular filter A is applied at r0
 only. `angular_mask` exposes A(θ, r) for callers that tile the field of view.
@@ -79,7 +79,7 @@ class Fingerprint:
 
     @property
     def norm2(self) -> float:
-        """Σ_f ‖F(f)‖²_F (the γ normalisation; DESIGN §4.7)."""
+        """Σ_f ‖F(f)‖²_F (the γ normalisation; docs/design.md §4.7)."""
         return float(np.vdot(self.data, self.data).real)
 
     def centred_conj(self, ndim: int) -> np.ndarray:
@@ -291,7 +291,7 @@ def mirror_fingerprint(freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.nd
                        name: str = "mirror") -> Fingerprint:
     """Straight mirror (uniform reflectivity segment) of length L, orientation α, centred at r0.
 
-    Closed form of P Γ Pᵀ for Γ on a segment (DESIGN §4.5): F = L sinc(K·t̂ L/2π) e^{-iK·r0}.
+    Closed form of P Γ Pᵀ for Γ on a segment (docs/design.md §4.5): F = L sinc(K·t̂ L/2π) e^{-iK·r0}.
     """
     r0 = np.asarray(r0, dtype=float)
     K3 = wavevectors(freqs, out_sines, in_sines, c0, 3)

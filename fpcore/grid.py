@@ -1,4 +1,4 @@
-"""Regular imaging grids, 2D (x–z) and 3D (x–y–z) (DESIGN.md §3)."""
+"""Regular imaging grids, 2D (x–z) and 3D (x–y–z) (docs/design.md §3)."""
 
 from __future__ import annotations
 
@@ -64,7 +64,7 @@ class Grid:
     def for_acquisition(cls, acq: Acquisition, band: tuple[float, float],
                         x_range: tuple[float, float] | None = None, y_range: tuple[float, float] | None = None,
                         z_range: tuple[float, float] | None = None, spacing: float | None = None) -> Grid:
-        """Default imaging grid of an acquisition (DESIGN §3), each part overridable.
+        """Default imaging grid of an acquisition (docs/design.md §3), each part overridable.
 
         Depths: the record's time window, z = c0 t/2 (from 2λ). Lateral: the aperture widened by the
         transmit fan at the deepest point (z s/c), at most twice the aperture. Spacing: λ_min/3 (2D) or

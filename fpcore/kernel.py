@@ -1,10 +1,10 @@
-"""The beamforming kernel behind every map (DESIGN.md §5, paper Supplementary S7).
+"""The beamforming kernel behind every map (docs/design.md §5, paper Supplementary S7).
 
 Every map the project computes is the same sum over the plane-wave samples j = (f, θ_out, θ_in):
 
-    B(r) = Σ_j w_j exp(+i K_j · r),   K_j = k_f (s_o + s_i, c_o + c_i)            (DESIGN §5)
+    B(r) = Σ_j w_j exp(+i K_j · r),   K_j = k_f (s_o + s_i, c_o + c_i)            (docs/design.md §5)
 
-* confocal image: w = R_θθ, I = |B|² (DESIGN §4.3; paper eq. "confocal" and S7 eq. I_BF);
+* confocal image: w = R_θθ, I = |B|² (docs/design.md §4.3; paper eq. "confocal" and S7 eq. I_BF);
 * γ-map numerator: w = R_θθ ∘ F*_θθ(r0) e^{-iK·r0}, γ ∝ |B| (paper S7 eq. gamma_BF).
 
 On a regular grid r = r_c + n·Δ (n integer) this is a type-1 non-uniform FFT with points K_j Δ
@@ -13,7 +13,7 @@ holds a finufft plan whose points are set once per acquisition geometry and grid
 every frame. `direct_sum` is the obviously-correct O(N_samples × N_points) reference.
 
 Sign: with numpy's forward FFT (e^{-i2πft}) a point scatterer at r gives R_θθ ∝ e^{-iK·r}
-(DESIGN §7 stack note); the focusing phase is therefore e^{+iK·r}. tests/test_kernel.py checks
+(docs/design.md §7 stack note); the focusing phase is therefore e^{+iK·r}. tests/test_kernel.py checks
 that a point's map peaks at its position.
 """
 
@@ -38,7 +38,7 @@ def wavevectors(freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, 
                 ndim: int) -> np.ndarray:
     """K_j = k_f (s_o + s_i, c_o + c_i) for all samples, shape (N_f·N_o·N_i, ndim), order (f, o, i).
 
-    ndim = 2 gives (K_x, K_z); ndim = 3 gives (K_x, K_y, K_z). c = √(1 − s_x² − s_y²) (DESIGN §4).
+    ndim = 2 gives (K_x, K_z); ndim = 3 gives (K_x, K_y, K_z). c = √(1 − s_x² − s_y²) (docs/design.md §4).
     """
     k = 2 * np.pi * np.asarray(freqs, dtype=np.float64) / c0
     so = np.asarray(out_sines, dtype=np.float64)
@@ -76,7 +76,7 @@ class GridTransform:
     """B(r) = Σ_j w_j e^{iK_j·r} on a regular grid by a type-1 NUFFT (finufft), plan reused.
 
     K: (N_s, ndim) wavevectors (see `wavevectors`). eps: requested relative accuracy of finufft
-    (errors scale with Σ|w|, not with the peak: speckle-like maps need eps ≈ 1e-4; DESIGN §7).
+    (errors scale with Σ|w|, not with the peak: speckle-like maps need eps ≈ 1e-4; docs/design.md §7).
     n_trans: number of weight vectors transformed per call (a dictionary batch).
     """
 

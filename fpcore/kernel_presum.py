@@ -1,6 +1,6 @@
-"""Lattice pre-sum kernel: the beamforming sum when the sines lie on one uniform grid (DESIGN.md §5).
+"""Lattice pre-sum kernel: the beamforming sum when the sines lie on one uniform grid (docs/design.md §5).
 
-The sum is the one of every map (DESIGN §5, `fpcore.kernel.GridTransform`):
+The sum is the one of every map (docs/design.md §5, `fpcore.kernel.GridTransform`):
 
     B(r) = Σ_j w_j exp(+i K_j·r),   K_j = k_f (s_o + s_i, c_o + c_i),   j = (f, o, i) in C order,
 
@@ -439,7 +439,7 @@ def _split(n: int, parts: int, c: int) -> tuple[int, int]:
 
 
 class PresumTransform:
-    """B(r) = Σ_j w_j e^{iK_j·r} on a regular grid, for sines on one lattice (DESIGN §5).
+    """B(r) = Σ_j w_j e^{iK_j·r} on a regular grid, for sines on one lattice (docs/design.md §5).
 
     Same result as `GridTransform(wavevectors(freqs, out_sines, in_sines, c0, grid.ndim), grid, eps)`
     when `PresumTransform.applicable(out_sines, in_sines, grid.ndim)`; the module docstring has the math.

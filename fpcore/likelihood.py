@@ -1,4 +1,4 @@
-"""Confocal images and γ-maps of acquisitions (DESIGN.md §4.3, §4.7; paper eq. P and S7).
+"""Confocal images and γ-maps of acquisitions (docs/design.md §4.3, §4.7; paper eq. P and S7).
 
 γ(r) = |Σ_f Tr{R(f) F(r, f)^†}| / √(Σ_f ‖R(f)‖²_F · Σ_f ‖F(r, f)‖²_F)
 
@@ -6,7 +6,7 @@ is computed in the plane-wave basis, where Tr{R F^†} = Σ_{o,i} R_θθ F*_θθ
 phase ramp, so the numerator over positions is the beamforming kernel applied to R ∘ F*(r0)
 (paper S7, eq. gamma_BF). By Cauchy–Schwarz 0 ≤ γ ≤ 1.
 
-Normalisation choice (DESIGN §4.7): the paper prints the denominator with unsquared Frobenius norms
+Normalisation choice (docs/design.md §4.7): the paper prints the denominator with unsquared Frobenius norms
 (eq. P); we use squared norms so that γ is a true normalised correlation bounded by 1. With a
 unitary shift ‖F(r)‖ is independent of r, so the two differ by a constant factor per frame and
 maps, peak positions and contrasts agree.
@@ -41,7 +41,7 @@ class ImagingConfig:
 
     kernel: 'auto' (structured pre-sum kernel when the sines allow it, else finufft), 'nufft' or 'presum'.
     apodization_tiles: split the grid into this many tiles per axis and apply the shift apodization
-    A(θ_out, r) A(θ_in, r) of paper eq. BF at each tile's centre (DESIGN §5); None: no shift apodization
+    A(θ_out, r) A(θ_in, r) of paper eq. BF at each tile's centre (docs/design.md §5); None: no shift apodization
     (the angular filter acts at r0 only and ‖F(r)‖ is constant).
     """
 
@@ -76,7 +76,7 @@ class Imager:
         return output_sines(acq.probe, acq.c0, self.config.band[1])
 
     def plane_waves(self, acq: Acquisition) -> PlaneWaveData:
-        """Band selection and output projection: R_θθ(f, θ_out, θ_in) (DESIGN §4.1–4.2)."""
+        """Band selection and output projection: R_θθ(f, θ_out, θ_in) (docs/design.md §4.1–4.2)."""
         spec = acq.spectrum(self.config.band[0], self.config.band[1], self.config.n_freq)
         return to_plane_waves(spec, self.out_sines_for(acq))
 
@@ -86,7 +86,7 @@ class Imager:
 
     def kernel(self, pw: PlaneWaveData) -> GridTransform | PresumTransform:
         """The kernel for this geometry: the structured pre-sum kernel when transmit and output sines
-        lie on one lattice (DESIGN §5, fpcore.kernel_presum), else the general finufft type-1."""
+        lie on one lattice (docs/design.md §5, fpcore.kernel_presum), else the general finufft type-1."""
         key = self._key(pw)
         kern = self._kernels.get(key)
         if kern is None:
@@ -130,11 +130,11 @@ class Imager:
         return self.kernel(pw)(pw.data.ravel())
 
     def confocal(self, pw: PlaneWaveData) -> np.ndarray:
-        """Confocal image I(r) = |B(r)|² (DESIGN §4.3), float32 on the grid."""
+        """Confocal image I(r) = |B(r)|² (docs/design.md §4.3), float32 on the grid."""
         return (np.abs(self.field(pw)) ** 2).astype(np.float32)
 
     def gamma(self, pw: PlaneWaveData, fp: Fingerprint, probe: Probe | None = None) -> np.ndarray:
-        """γ-map of one fingerprint on the grid, 0 ≤ γ ≤ 1 (paper eq. P, S7; DESIGN §4.7).
+        """γ-map of one fingerprint on the grid, 0 ≤ γ ≤ 1 (paper eq. P, S7; docs/design.md §4.7).
 
         With `apodization_tiles` set, `probe` gives the aperture of A(θ, r) (paper S2, Fig. S9).
         """

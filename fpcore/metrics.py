@@ -1,6 +1,6 @@
-"""Detection figures: contrasts, false-alarm probability, Cramér–Rao precision, gain (DESIGN.md §4.8–4.11).
+"""Detection figures: contrasts, false-alarm probability, Cramér–Rao precision, gain (docs/design.md §4.8–4.11).
 
-Two contrasts, named apart (DESIGN §4.8):
+Two contrasts, named apart (docs/design.md §4.8):
 * ``c_gamma`` = γ(target) / mean(γ outside the target) — the paper's main-text figure (Fig. 2);
 * ``c_pfa`` = (γ_max/γ_M)², γ_M = √⟨γ²⟩ outside — the contrast of the false-alarm section (S6).
 
@@ -9,7 +9,7 @@ number of independent speckle grains in the field of view. Check: C = 6, L = 25�
 
 Precision (paper eq. loc and S5): lateral δρ_L = δρ_D/√C_γ with δρ_D = λ/(2 sin α); axial
 δz_L = λ/(4√2 π √C_γ). The paper prints the axial form (eq. axial2) and Quazi's σ_t (eq. Quazi) with
-c·f_c where c/f_c = λ is meant; we use the dimensionally consistent form (DESIGN §4.10).
+c·f_c where c/f_c = λ is meant; we use the dimensionally consistent form (docs/design.md §4.10).
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ def contrasts(gamma: np.ndarray, grid: Grid, target: np.ndarray, exclusion_radiu
     """(C_γ, C) for the target at position `target` (metres): C_γ = γ_t/mean(γ_out), C = (γ_t/γ_M)².
 
     γ_t is `value` if given (e.g. a sub-pixel peak), else γ at the nearest node; "outside" excludes a
-    ball of exclusion_radius around the target (DESIGN §4.8).
+    ball of exclusion_radius around the target (docs/design.md §4.8).
     """
     out = _outside_mask(grid, np.asarray(target, float), exclusion_radius)
     if not out.any():
@@ -97,7 +97,7 @@ def diffraction_resolution(wavelength: float, aperture: float, depth: float) -> 
 
 
 def cramer_rao_precision(wavelength: float, resolution: float, c_gamma: float) -> tuple[float, float]:
-    """(δρ_L, δz_L) = (δρ_D/√C_γ, λ/(4√2 π √C_γ)) (paper eq. loc; DESIGN §4.10 axial form)."""
+    """(δρ_L, δz_L) = (δρ_D/√C_γ, λ/(4√2 π √C_γ)) (paper eq. loc; docs/design.md §4.10 axial form)."""
     c = max(float(c_gamma), 1e-12)
     return resolution / np.sqrt(c), wavelength / (4 * np.sqrt(2) * np.pi * np.sqrt(c))
 

@@ -1,4 +1,4 @@
-"""Tracking moving targets through the fog on γ-maps (issue 5; DESIGN.md §1, §4.8–4.10).
+"""Tracking moving targets through the fog on γ-maps (issue 5; docs/design.md §1, §4.8–4.10).
 
 Per-frame detection alone fails on deep frames: the global γ maximum can jump to a fog fluctuation
 while the target's γ stays high near its last position. The tracker therefore:
@@ -22,7 +22,7 @@ while the target's γ stays high near its last position. The tracker therefore:
   `confirm_hits` hits and drops it after `max_misses` consecutive misses;
 * reports confidence = 1 − PFA of the last accepted measurement, decayed by misses;
 * optionally (`integrate_frames` = K > 1) searches the mean of the last K γ-maps: the fog decorrelates
-  from frame to frame (DESIGN §6, the suspension's frame-to-frame decorrelation) while a target's γ
+  from frame to frame (docs/design.md §6, the suspension's frame-to-frame decorrelation) while a target's γ
   persists, so fog peaks fall by up to √K against it. The mean's peak sits at the target's mean position
   over the window, i.e. it lags by v(K − 1)Δt/2: use K > 1 for slow targets only (moving it forward by
   the track's own velocity estimate feeds back into that estimate and was found unstable). The noise of
@@ -150,7 +150,7 @@ class Tracker:
             self.c0 / (2 * self.bandwidth)
 
     def _noise(self, c_gamma: float, depth: float) -> np.ndarray:
-        """Measurement covariance from the Cramér–Rao precision (paper eq. loc, DESIGN §4.10)."""
+        """Measurement covariance from the Cramér–Rao precision (paper eq. loc, docs/design.md §4.10)."""
         res, ax_res = self._resolution(depth)
         lat, _ = cramer_rao_precision(self.wavelength, res, c_gamma)
         # Axial: the tracker reads the envelope |γ| peak, which does not use the carrier phase that

@@ -1,4 +1,4 @@
-"""Zenoh plumbing shared by the streaming nodes (DESIGN.md §2, §7 and its "Stack notes").
+"""Zenoh plumbing shared by the streaming nodes (docs/design.md §2, §7 and its "Stack notes").
 
 Every node runs an embedded zenoh session: peer mode, loopback endpoints, multicast scouting off.
 Sessions always close (``with open_session(bus) as s:``) and callback subscribers are undeclared
@@ -21,7 +21,7 @@ page faults), so benchmarks leave a few warm-up frames out. Measured with 9 MB f
 processes: 860 MB/s with the pool vs 540 MB/s over TCP loopback (payload copy included); in the
 whole pipeline the gain is small (12.6 vs 12.2 frames/s, 3D bench) because processing dominates.
 
-Back-pressure primitives (DESIGN §7): :class:`LatestSlot` is the depth-1 ring between a zenoh
+Back-pressure primitives (docs/design.md §7): :class:`LatestSlot` is the depth-1 ring between a zenoh
 callback and a worker (live mode: keep the newest, count what it replaces); :class:`FifoSlot` blocks
 the callback when full (replay mode: drop nothing; the block propagates to the publisher through
 zenoh's BLOCK congestion control).

@@ -45,7 +45,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     console = Console()
     source = SimulatorSource(args.scenario, n_frames=args.frames, quick=not args.full, seed=args.seed)
     # Region of interest below the suspension surface (the interface echo and the fog just under it
-    # dominate γ's global normalisation there; DESIGN §4.9 caveat, paper S2).
+    # dominate γ's global normalisation there; docs/design.md §4.9 caveat, paper S2).
     grid = Grid.regular((-11e-3, 11e-3), (20e-3, 31e-3), 0.25e-3, y_range=(-5e-3, 5e-3))
     cfg = ProcessorConfig(rig=args.rig, queue="fifo", grid=grid)
     rows: list[tuple] = []
@@ -130,7 +130,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub.choices["locate"].set_defaults(func=run_locate)
     add_simulate_parser(sub)
     add_characterise_parser(sub)
-    # Streaming nodes (issue 4): each registers its subcommand and handler (DESIGN §2, §7).
+    # Streaming nodes (issue 4): each registers its subcommand and handler (docs/design.md §2, §7).
     add_publish_parser(sub)
     add_process_parser(sub)
     add_record_parser(sub)

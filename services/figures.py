@@ -4,7 +4,7 @@ Top row: the confocal image in dB (grey, −30…0 dB re its maximum), where a t
 medium is lost in the multiple-scattering fog. Bottom row: the same sections with each target's γ-map
 over it, in dB re that map's maximum, one hue per target (red, green, …; the paper draws the 10 mm
 sphere in red and the 8 mm one in green). γ is a normalised amplitude (a Cauchy–Schwarz ratio,
-DESIGN §4.7), so its dB are 20·log10(γ/γ_max); only γ ≥ ``threshold``·γ_max is coloured (0.6: −4.4 dB).
+docs/design.md §4.7), so its dB are 20·log10(γ/γ_max); only γ ≥ ``threshold``·γ_max is coloured (0.6: −4.4 dB).
 
 Both rows carry a white scale bar and, when the target's diameter is known (the fingerprint's
 ``diameter_m`` state, or the ground truth), the dashed outline of the sphere of that diameter centred

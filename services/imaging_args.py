@@ -1,7 +1,7 @@
 """Imaging options shared by `fp locate` and `fp process`, and numerical fingerprint specs.
 
 One place for the band / grid / output-direction / SVD options (lengths in metres unless a unit is
-given, DESIGN §3) and for the `point | mirror:L=…,alpha=…` model specs (DESIGN §4.5).
+given, docs/design.md §3) and for the `point | mirror:L=…,alpha=…` model specs (docs/design.md §4.5).
 """
 
 from __future__ import annotations

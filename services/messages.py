@@ -1,4 +1,4 @@
-"""Message models of the streaming service (DESIGN.md §7).
+"""Message models of the streaming service (docs/design.md §7).
 
 Every message is a pydantic v2 model with ``schema_name`` and ``schema_version``. Array fields hold
 numpy arrays in Python; on the wire (``services.wire``) each array travels as a raw little-endian
@@ -304,7 +304,7 @@ def _check_on_grid(field: str, arr: np.ndarray, grid: Grid) -> None:
 
 
 class Normalisation(_Model):
-    """How γ was normalised. ``cauchy_schwarz``: γ = |Σ_f Tr R F†| / √(Σ_f‖R‖_F² Σ_f‖F‖_F²) (DESIGN §4.7),
+    """How γ was normalised. ``cauchy_schwarz``: γ = |Σ_f Tr R F†| / √(Σ_f‖R‖_F² Σ_f‖F‖_F²) (docs/design.md §4.7),
     so 0 ≤ γ ≤ 1."""
 
     kind: str = "cauchy_schwarz"

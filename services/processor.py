@@ -1,7 +1,7 @@
-"""Processor node (`fp process`): RF frames in; γ-maps, confocal image, detections, tracks out (DESIGN.md §2, §7).
+"""Processor node (`fp process`): RF frames in; γ-maps, confocal image, detections, tracks out (docs/design.md §2, §7).
 
 Per frame on ``fp/<rig>/rf`` it publishes, in this order, each carrying the input's frame index and
-acquisition timestamp: ``…/image`` (ConfocalImage, DESIGN §4.3), one ``…/gamma`` (GammaMap) per
+acquisition timestamp: ``…/image`` (ConfocalImage, docs/design.md §4.3), one ``…/gamma`` (GammaMap) per
 fingerprint (§4.7), ``…/tracks`` (Tracks, ``fpcore.tracking.Tracker``) and last ``…/detections``
 (Detections: C_γ, C, PFA, Cramér–Rao precision, error to the frame's ground truth if it carries
 one; §4.8–4.10). Detections come last so that they double as the per-frame acknowledgement that
@@ -9,18 +9,18 @@ paces a replaying publisher. ``…/status`` carries a Status every second (frame
 publish→detection latency median/p95, dropped, rejected, dictionary names); the liveliness token
 ``fp/<rig>/alive/processor`` says the node is up.
 
-Back-pressure (DESIGN §7): ``queue="newest"`` (live) puts a depth-1 ring between the zenoh callback
+Back-pressure (docs/design.md §7): ``queue="newest"`` (live) puts a depth-1 ring between the zenoh callback
 and the worker thread — the worker always takes the newest frame and the ones it skips are counted
 as ``dropped``; ``queue="fifo"`` (replay) blocks the callback when its FIFO is full, so nothing is
 dropped and the block reaches the publisher through BLOCK congestion control.
 
-Bad input (DESIGN §7): frames are validated in the callback (``services.wire.decode`` with
+Bad input (docs/design.md §7): frames are validated in the callback (``services.wire.decode`` with
 ``max_frame_bytes``; oversize payloads are refused before they are copied). A refused frame yields
 exactly one ErrorReport on ``…/errors`` naming the field and the problem, is counted as
 ``rejected``, and the node goes on; so does a frame whose processing fails (e.g. a geometry that
 does not match the fingerprints).
 
-Dictionary (DESIGN §3): fingerprints are built from calibration acquisitions (target alone at r0;
+Dictionary (docs/design.md §3): fingerprints are built from calibration acquisitions (target alone at r0;
 §4.4) or numerical models (§4.5) against the geometry of the frames (band, frequencies, output
 directions) — at start on the geometry of the first calibration (so the NUFFT plan is ready before
 the node announces itself), at the first frame otherwise, and again whenever the frame geometry or a

@@ -1,4 +1,4 @@
-"""Publisher node (`fp publish`) and the one-process pipeline :func:`run_pipeline` (DESIGN.md §2, §7).
+"""Publisher node (`fp publish`) and the one-process pipeline :func:`run_pipeline` (docs/design.md §2, §7).
 
 The publisher puts one ``RFFrame`` payload per frame on ``fp/<rig>/rf`` — congestion control BLOCK
 (never DROP: frames are not discarded at the sender), the wire header as the attachment, and a zenoh

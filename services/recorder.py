@@ -1,11 +1,11 @@
-"""Recorder node (`fp record`) and salvage of broken recordings (`fp recover`) (DESIGN.md §2, §7, stack notes).
+"""Recorder node (`fp record`) and salvage of broken recordings (`fp recover`) (docs/design.md §2, §7, stack notes).
 
 Every message on ``fp/**`` (or one rig's ``fp/<rig>/**``) goes to MCAP, byte for byte:
 
 * one channel per key expression and header schema: topic = the key (``fp/bench/rf``), message
   encoding ``"fpwire"`` (the FPWIRE01 payload exactly as it travelled: header + raw buffers), schema =
   the JSON Schema of the message header (``services.schemas_gen.render``; encoding ``jsonschema``,
-  name = schema name), so other tools can read the metadata (DESIGN §7);
+  name = schema name), so other tools can read the metadata (docs/design.md §7);
 * a malformed message is still recorded raw under its key: on a channel of its header's schema when
   the header is readable and supported, else on a channel whose schema is ``"unknown"``; channel
   metadata keeps the schema name/version the header claimed;
@@ -17,7 +17,7 @@ Every message on ``fp/**`` (or one rig's ``fp/<rig>/**``) goes to MCAP, byte for
 * rotation by size (``max_bytes``) and/or age (``max_seconds``): segments ``<stem>-000.mcap``, …
 
 The zenoh callback only queues, within a byte budget (``max_queue_bytes``, 512 MiB: a slow disk blocks
-the bus instead of growing memory, DESIGN §7 "replay blocks"); a writer thread writes, flushes and
+the bus instead of growing memory, docs/design.md §7 "replay blocks"); a writer thread writes, flushes and
 rotates.
 """
 

@@ -1,4 +1,4 @@
-"""Frame sources of the publisher (DESIGN.md §2 data flow, §6, §7).
+"""Frame sources of the publisher (docs/design.md §2 data flow, §6, §7).
 
 A source yields :class:`Item` s: the wire payload of one ``RFFrame`` (the bytes that go on
 ``fp/<rig>/rf``), its header (the zenoh attachment) and its time in the source's own clock
@@ -10,7 +10,7 @@ A source yields :class:`Item` s: the wire payload of one ``RFFrame`` (the bytes 
 * :class:`UFFSource` — frames of a UFF file (``fpcore.io.read_uff``).
 * :class:`MCAPSource` — the ``…/rf`` messages of a recording, the same bytes, the recorded log times.
 * :class:`IngestSource` — whatever any program puts on ``fp/<rig>/ingest``; items are marked
-  ``trusted=False`` so the publisher validates them before forwarding (DESIGN §7 bad input).
+  ``trusted=False`` so the publisher validates them before forwarding (docs/design.md §7 bad input).
 
 Sources are plain iterables; ``repeat`` replays a finite source several times with increasing frame
 indices (benchmarks).
@@ -66,7 +66,7 @@ class Item:
 @dataclass
 class FingerprintSpec:
     """A dictionary entry to build: a calibration acquisition of the target alone at ``r0`` or a model
-    spec (``"point"``, ``"mirror:L=2mm,alpha=10"``) centred at ``r0`` (DESIGN §4.4–4.5)."""
+    spec (``"point"``, ``"mirror:L=2mm,alpha=10"``) centred at ``r0`` (docs/design.md §4.4–4.5)."""
 
     name: str
     calibration: Acquisition | None = None
@@ -178,7 +178,7 @@ class SimulatorSource(AcquisitionSource):
 
 
 class UFFSource(AcquisitionSource):
-    """Frames of a UFF file (``fpcore.io.read_uff``; DESIGN §3 exchange format)."""
+    """Frames of a UFF file (``fpcore.io.read_uff``; docs/design.md §3 exchange format)."""
 
     def __init__(self, path: str | Path, dataset: str | None = None, repeat: int = 1) -> None:
         from fpcore.io import read_uff

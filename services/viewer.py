@@ -1,4 +1,4 @@
-"""Recordings to Rerun (`fp view`) and to a static PNG (`fp figure`) (DESIGN.md §2, §7 stack notes).
+"""Recordings to Rerun (`fp view`) and to a static PNG (`fp figure`) (docs/design.md §2, §7 stack notes).
 
 `fp view REC.mcap --rrd out.rrd` decodes every FPWIRE01 message of a recording (``services.recorder``)
 and logs it to Rerun natively (Rerun shows custom MCAP encodings only as blobs), on the timelines

@@ -1,4 +1,4 @@
-"""Default imaging grid of an acquisition: covers the record's depths and the transmit fan (DESIGN §3)."""
+"""Default imaging grid of an acquisition: covers the record's depths and the transmit fan (docs/design.md §3)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The fast kernel equals the direct sum, and a point's map peaks at its position (DESIGN.md §5, §8)."""
+"""The fast kernel equals the direct sum, and a point's map peaks at its position (docs/design.md §5, §8)."""
 
 from __future__ import annotations
 
@@ -46,7 +46,7 @@ def test_point_map_peaks_at_its_position(ndim: int) -> None:
     K, grid, _ = _geometry(ndim, np.random.default_rng(0))
     r = np.array([0.9e-3, -0.3e-3, 20.6e-3]) if ndim == 3 else np.array([0.9e-3, 0.0, 20.6e-3])
     coords = r[[0, 2]] if ndim == 2 else r
-    data = np.exp(-1j * (K @ coords))  # a point at r: R_θθ ∝ e^{-iK·r} (DESIGN §7 sign note)
+    data = np.exp(-1j * (K @ coords))  # a point at r: R_θθ ∝ e^{-iK·r} (docs/design.md §7 sign note)
     m = np.abs(GridTransform(K, grid, eps=1e-5)(data))
     peak = grid.position(np.unravel_index(int(m.argmax()), m.shape))
     assert np.all(np.abs(peak - r) <= np.array(grid.spacing).max() * 1.0001)

@@ -1,4 +1,4 @@
-"""PresumTransform (fpcore/kernel_presum.py) against the direct sum (DESIGN §5)."""
+"""PresumTransform (fpcore/kernel_presum.py) against the direct sum (docs/design.md §5)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Contrast, PFA and precision formulas against the paper's figures (DESIGN.md §4.8–4.10)."""
+"""Contrast, PFA and precision formulas against the paper's figures (docs/design.md §4.8–4.10)."""
 
 from __future__ import annotations
 

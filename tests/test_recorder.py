@@ -1,4 +1,4 @@
-"""Recorder: kill -9 mid-run and `fp recover`, rotation, salvage of truncated files (issue 4; DESIGN.md §7,
+"""Recorder: kill -9 mid-run and `fp recover`, rotation, salvage of truncated files (issue 4; docs/design.md §7,
 stack notes on mcap flush/non-seeking reads)."""
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ def _summary_ok(path: Path) -> bool:
 @pytest.mark.timeout(60)
 def test_kill9_recorder_then_recover_keeps_everything_flushed(tmp_path, capsys) -> None:
     """A recorder killed with SIGKILL mid-run: `fp recover` returns every message older than ~1 s before the
-    kill (flush every 0.5 s; DESIGN stack notes)."""
+    kill (flush every 0.5 s; docs/design.md §7 stack notes)."""
     rig, port = "k9", free_port()
     path, fixed = tmp_path / "live.mcap", tmp_path / "fixed.mcap"
     sent: list[tuple[int, float]] = []

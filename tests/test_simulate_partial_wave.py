@@ -1,5 +1,5 @@
 """Partial-wave (Faran) scattering: energy conservation, rigid and fluid limits, special functions,
-and the sign convention of the series against the Born point scatterer (DESIGN.md §4.1, §6)."""
+and the sign convention of the series against the Born point scatterer (docs/design.md §4.1, §6)."""
 
 from __future__ import annotations
 

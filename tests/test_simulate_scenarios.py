@@ -1,6 +1,6 @@
 """Scenarios and the statistical multiple-scattering background: frames, ground truth, calibration,
 reproducibility, frame-to-frame decorrelation, independence from the target, and the confocal contrast
-law C_I ∝ exp(−z/ℓ_s) (paper main text eq. (1); DESIGN.md §4.11, §6)."""
+law C_I ∝ exp(−z/ℓ_s) (paper main text eq. (1); docs/design.md §4.11, §6)."""
 
 from __future__ import annotations
 
@@ -125,7 +125,7 @@ def test_frame_to_frame_correlation_follows_dws() -> None:
 
 def _apodised_confocal(h: np.ndarray, probe: Probe, seq: PlaneWaveSequence, freqs: np.ndarray, c0: float,
                        spectrum: np.ndarray, xs: np.ndarray, z: float) -> np.ndarray:
-    """A small plane-wave confocal image (DESIGN §4.3) with a Hann-apodised receive aperture, |s_o| ≤ 0.5."""
+    """A small plane-wave confocal image (docs/design.md §4.3) with a Hann-apodised receive aperture, |s_o| ≤ 0.5."""
     k = 2 * np.pi * freqs / c0
     u = probe.positions[:, 0]
     so = np.linspace(-0.5, 0.5, 41)

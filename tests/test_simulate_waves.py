@@ -1,5 +1,5 @@
 """Frequency-domain engine: band, RF synthesis ⇄ Acquisition.spectrum, point radiation vs direct sum,
-time of flight of echoes with the DESIGN §3 transmit-delay convention, interface echo."""
+time of flight of echoes with the docs/design.md §3 transmit-delay convention, interface echo."""
 
 from __future__ import annotations
 

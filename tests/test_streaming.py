@@ -1,4 +1,4 @@
-"""Streaming service over real zenoh on loopback (issue 4; DESIGN.md §2, §7).
+"""Streaming service over real zenoh on loopback (issue 4; docs/design.md §2, §7).
 
 Nodes run as `fp process` / `fp record` subprocesses (stopped by pid in `finally`) or in-process;
 every test uses its own random loopback port. Frames are small 2D Born frames (32 elements,
@@ -204,7 +204,7 @@ def test_end_to_end_record_and_replay(data, tmp_path) -> None:
 
 
 def _bad_payloads(frame: RFFrame) -> dict[str, tuple[bytes, bytes]]:
-    """name → (payload, attachment) of the five kinds of bad input (DESIGN §7)."""
+    """name → (payload, attachment) of the five kinds of bad input (docs/design.md §7)."""
     def build(**changes: Any) -> RFFrame:
         return RFFrame.model_construct(**{**dict(frame), **changes})
 
@@ -285,7 +285,7 @@ def test_malformed_frames_are_reported_and_recorded(data, tmp_path) -> None:
 @pytest.mark.timeout(60)
 def test_live_mode_keeps_the_newest_frame_and_counts_drops(data) -> None:
     """Keep-newest back-pressure: frames sent faster than processed are dropped and counted; the newest
-    frame is always processed (DESIGN §7)."""
+    frame is always processed (docs/design.md §7)."""
     rig, port = "live", free_port()
     frames = data["frames"]
     cfg = ProcessorConfig(rig=rig, queue="newest", **SMALL, status_period=0.2)

@@ -1,9 +1,9 @@
-"""Forward model: realistic plane-wave acquisitions of targets in strongly scattering media (DESIGN.md §6).
+"""Forward model: realistic plane-wave acquisitions of targets in strongly scattering media (docs/design.md §6).
 
 Frequency-domain and exact where it can be: partial-wave (Faran) spheres and cylinders evaluated at the
 elements, Born and Foldy–Lax point scatterers, ballistic extinction, interface echo, a statistical
 multiple-scattering background, the transducer band and electronic noise. Conventions: numpy's
-e^{-i2πft} spectra, outgoing e^{-ikr}, plane-wave delays τ = (u_x s_x + u_y s_y)/c0 (DESIGN.md §3–4).
+e^{-i2πft} spectra, outgoing e^{-ikr}, plane-wave delays τ = (u_x s_x + u_y s_y)/c0 (docs/design.md §3–4).
 
     >>> import fpcore.simulate as sim
     >>> sc = sim.scenario("sinking-sphere", quick=True, seed=0)

@@ -1,7 +1,7 @@
 """Strongly scattering half-space below a water layer: ballistic extinction, interface echo, and a
 statistical multiple-scattering background for large 3D (and 2D) media.
 
-Physics (paper Supplementary S1, S4; DESIGN.md §6):
+Physics (paper Supplementary S1, S4; docs/design.md §6):
 
 * **Extinction.** The coherent wave decays as ⟨ψ⟩ ∝ exp(ikz − z/(2ℓ_ext)), ℓ_ext = (1/ℓ_s + 1/ℓ_a)^{-1}
   (S1, eqs. ⟨ψ⟩(z, f) and ℓ_ext). A target's echo is multiplied by exp(−L_in/(2ℓ_ext)) on the way in

@@ -12,7 +12,7 @@ cylinder: u = ∇φ + ∇×(ψ ẑ)) and three conditions hold at r = a for n �
 displacement, σ_rr = −p, σ_rθ = 0 (n = 0: the first two only). Material losses enter as complex
 wave speeds c/(1 + iδ) (Im k > 0 in this convention).
 
-This package's spectra use numpy's e^{-i2πft} (DESIGN.md §4.1): the physical field is the complex
+This package's spectra use numpy's e^{-i2πft} (docs/design.md §4.1): the physical field is the complex
 conjugate, i.e. A_n → conj(A_n), i^n → (−i)^n, h^{(1)} → h^{(2)} (see `special`). For a lossless
 scatterer S_n = 1 + 2A_n is unimodular (energy conservation), which the tests check together with the
 rigid (A_n = −j_n'/h_n') and fluid limits.

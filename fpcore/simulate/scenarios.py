@@ -1,4 +1,4 @@
-"""Ready-made acquisition scenarios with ground truth travelling with every frame (DESIGN.md §6).
+"""Ready-made acquisition scenarios with ground truth travelling with every frame (docs/design.md §6).
 
     >>> import fpcore.simulate as sim
     >>> sc = sim.scenario("sinking-sphere", quick=True, seed=0)

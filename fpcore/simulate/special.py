@@ -1,6 +1,6 @@
 """Special functions for the partial-wave series, by vectorised recurrences.
 
-Sign convention (DESIGN.md §4.1): spectra use numpy's forward FFT e^{-i2πft}, so a time-harmonic
+Sign convention (docs/design.md §4.1): spectra use numpy's forward FFT e^{-i2πft}, so a time-harmonic
 field carries e^{+iωt} and an *outgoing* wave is e^{-ikr}. The outgoing radial functions are
 therefore the Hankel functions of the second kind:
 

@@ -7,7 +7,7 @@ amplitude (e^{-i2πft} spectra, outgoing e^{-ikr}; see `waves`), as complex64 (N
   elements with the outgoing spherical (cylindrical) Hankel functions — not a far-field formula — so
   the specular echo, the bulk reverberations inside the solid and the circumferential (Rayleigh-type,
   whispering-gallery) waves are all there (paper Supplementary S3, Extended Data Fig. 1;
-  DESIGN.md §4.5, §6):
+  docs/design.md §4.5, §6):
 
       H = e^{−ik(s·ρ_c + c z_c)} Σ_n (2n+1)(−i)^n Ā_n h_n^{(2)}(k|u − r_c|) P_n(cos Θ)      (3D)
       H = e^{−ik(s x_c + c z_c)} Σ_n ε_n (−i)^n Ā_n H_n^{(2)}(k|u − r_c|) cos(nΘ)            (2D)

@@ -1,7 +1,7 @@
 """Frequency-domain building blocks: transducer band, time window, RF synthesis, Green functions,
 plane-wave incidence and the point-cloud radiation engine.
 
-Conventions (DESIGN.md §3–4): R(f) = ∫ R(t) e^{-i2πft} dt; an incident plane wave of direction sines
+Conventions (docs/design.md §3–4): R(f) = ∫ R(t) e^{-i2πft} dt; an incident plane wave of direction sines
 (s_x, s_y), cosine c = √(1 − s_x² − s_y²), fired with delays τ = (u_x s_x + u_y s_y)/c0, is
 p_inc(r, f) = exp(−ik(x s_x + y s_y + z c)) (time zero when the wavefront crosses the array origin);
 outgoing waves are e^{-ikr}:
@@ -123,7 +123,7 @@ class TimeWindow:
         """RF (N_u, N_θ, n_samples) float32 from X(f) on `bins`, given as (N_f, N_u, N_θ).
 
         Inverse of `Acquisition.spectrum`: X(f) = Σ_n r(t0 + n/fs) e^{−i2πf(t0+n/fs)}/fs, hence
-        r = irfft(fs · X(f) · e^{i2πf t0}) (DESIGN §4.1).
+        r = irfft(fs · X(f) · e^{i2πf t0}) (docs/design.md §4.1).
         """
         n_f, n_u, n_i = spectrum.shape
         f = self.freqs()[bins]
@@ -158,7 +158,7 @@ def green(k: float, d: np.ndarray, dim: int) -> np.ndarray:
 
 
 def incident_phase(k: float, sines: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """exp(−ik(x s_x + y s_y + z c)), shape (N_points, N_θ) (DESIGN §3, paper Methods P(θ, r, f))."""
+    """exp(−ik(x s_x + y s_y + z c)), shape (N_points, N_θ) (docs/design.md §3, paper Methods P(θ, r, f))."""
     return np.exp(-1j * k * _path_in(sines, points))
 
 
@@ -183,7 +183,7 @@ def radiate_points(points: np.ndarray, strength: np.ndarray, elements: np.ndarra
                    out: np.ndarray | None = None) -> np.ndarray:
     """H(f, u, θ) = Σ_j G(u, r_j; k_f) t_j(f) ψ_j(θ, f) for point scatterers (Born or Foldy–Lax).
 
-    points (N_s, 3); strength t_j: (N_s,) or (N_s, N_f) complex (scattered field t ψ G, DESIGN §6);
+    points (N_s, 3); strength t_j: (N_s,) or (N_s, N_f) complex (scattered field t ψ G, docs/design.md §6);
     ψ_j = exp(−ik(s·ρ_j + c z_j)) (the incident plane wave) unless `excitation(m)` returns the
     exciting field (N_s, N_θ) at frequency index m (Foldy–Lax). att_in (N_s, N_θ) and att_out
     (N_u, N_s) multiply the incoming and outgoing legs (ballistic extinction, `medium`); `spectral`
