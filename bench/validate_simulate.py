@@ -25,6 +25,7 @@ import numpy as np
 import fpcore
 import fpcore.simulate as sim
 from fpcore.acquisition import PlaneWaveSequence, Probe
+from fpcore.geometry import cosines
 from fpcore.metrics import contrasts, pfa
 
 
@@ -77,8 +78,7 @@ def _pw_confocal(h: np.ndarray, probe: Probe, sines: np.ndarray, freqs: np.ndarr
     w = np.cos(0.5 * np.pi * u[:, 0] / ax) ** 2 * (np.cos(0.5 * np.pi * u[:, 1] / ay) ** 2 if ay > probe.pitch else 1)
     p = np.exp(-1j * k[:, None, None] * (s_out @ u[:, :2].T)[None]) * w
     r = p @ (h * spec[:, None, None])
-    ci = np.sqrt(1 - np.sum(sines**2, 1))
-    co = np.sqrt(1 - np.sum(s_out**2, 1))
+    ci, co = cosines(sines), cosines(s_out)  # c = √(1 − s_x² − s_y²) (docs/design.md §4)
     kx = k[:, None, None] * (s_out[None, :, None, 0] + sines[None, None, :, 0])
     ky = k[:, None, None] * (s_out[None, :, None, 1] + sines[None, None, :, 1])
     kz = k[:, None, None] * (co[None, :, None] + ci[None, None, :])

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from .acquisition import Acquisition, PlaneWaveSequence, Probe
+from .geometry import cosines
 
 __all__ = ["born_points"]
 
@@ -29,7 +30,7 @@ def born_points(probe: Probe, seq: PlaneWaveSequence, points: np.ndarray, amps: 
     band = np.nonzero(pulse_all > 1e-6)[0]
     f, pulse = f_all[band], pulse_all[band]
     s = seq.sines
-    c = np.sqrt(1 - s[:, 0] ** 2 - s[:, 1] ** 2)
+    c = cosines(s)
     spec = np.zeros((probe.n_elements, seq.n_waves, f.size), np.complex128)
     w = -2j * np.pi * f
     for r, a in zip(np.atleast_2d(points), np.atleast_1d(amps), strict=True):

@@ -23,7 +23,8 @@ import numpy as np
 import scipy.fft as sfft
 
 from .acquisition import PlaneWaveData
-from .fingerprint import Fingerprint, mirror_direction, mirror_response, sinc_segment
+from .fingerprint import Fingerprint, mirror_response, sinc_segment
+from .geometry import mirror_direction, to_xyz
 from .grid import Grid
 from .kernel import GridTransform, default_threads, wavevectors
 from .likelihood import Imager
@@ -169,7 +170,7 @@ class Dictionary:
         """Every state through the NUFFT, n_trans = batch states per call (plan shared)."""
         grid = imager.grid
         K = wavevectors(pw.freqs, pw.out_sines, pw.in_sines, pw.c0, grid.ndim)
-        K3 = K if grid.ndim == 3 else np.stack([K[:, 0], np.zeros(len(K)), K[:, 1]], axis=1)
+        K3 = to_xyz(K, grid.ndim)  # (K_x, K_z) → (K_x, 0, K_z) in 2D
         n = len(self)
         kern = GridTransform(K, grid, eps=imager.config.eps, n_trans=batch)
         for a in range(0, n, batch):
@@ -220,7 +221,7 @@ class _FFTCorrelator:
         offs = [(ne - n) // 2 for ne, n in zip(shape_ext, grid.shape, strict=True)]
         axes_ext = [a[0] + (np.arange(ne) - o) * d
                     for a, ne, o, d in zip(grid.axes, shape_ext, offs, spacing, strict=True)]
-        ext = Grid(axes_ext[0], axes_ext[-1], axes_ext[1] if grid.ndim == 3 else None)
+        ext = Grid.from_axes(axes_ext)
         kern = GridTransform(K - centre[None, :], ext, eps=eps)
         kappa, tapers = [], []
         for d, (ne, step) in enumerate(zip(shape_ext, spacing, strict=True)):
@@ -235,12 +236,8 @@ class _FFTCorrelator:
             taper = np.multiply.outer(taper, t)
         mesh = np.meshgrid(*kappa, indexing="ij")
         k_true = [m + c for m, c in zip(mesh, centre, strict=True)]
-        if grid.ndim == 2:
-            K3k = np.stack([k_true[0].ravel(), np.zeros(k_true[0].size), k_true[1].ravel()], axis=1)
-            Ks3 = np.stack([K[:, 0], np.zeros(len(K)), K[:, 1]], axis=1)
-        else:
-            K3k = np.stack([k.ravel() for k in k_true], axis=1)
-            Ks3 = K
+        K3k = to_xyz(np.stack([k.ravel() for k in k_true], axis=1), grid.ndim)
+        Ks3 = to_xyz(K, grid.ndim)
         crop = tuple(slice(o, o + n) for o, n in zip(offs, grid.shape, strict=True))
         return cls(kern, taper.astype(np.float32), crop, K3k.astype(np.float32), family, shape_ext,
                    Ks3.astype(np.float32))

@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from .acquisition import Acquisition, PlaneWaveData, Probe, Spectrum, to_plane_waves
+from .geometry import cosines, from_xyz, mirror_direction
 from .kernel import wavevectors
 
 __all__ = [
@@ -85,7 +86,7 @@ class Fingerprint:
     def centred_conj(self, ndim: int) -> np.ndarray:
         """conj(F(r0)) e^{-iK·r0}, flattened (f, o, i): γ_num(r) = |Σ R · this · e^{iK·r}| (paper S7)."""
         K = wavevectors(self.freqs, self.out_sines, self.in_sines, self.c0, ndim)
-        r0 = self.r0[[0, 2]] if ndim == 2 else self.r0
+        r0 = from_xyz(self.r0, ndim)
         return (np.conj(self.data).ravel() * np.exp(-1j * (K @ r0))).astype(np.complex64)
 
     def shifted(self, r: np.ndarray) -> np.ndarray:
@@ -101,7 +102,7 @@ def _path(sines: np.ndarray, shifts: np.ndarray) -> np.ndarray:
     """s·Δρ + cΔz of each direction (N_s,) for each shift (M, 3) or (3,): (N_s, M) — the extra path of
     the plane wave s when the target moves by the shift (paper eq. BF's phase, over k)."""
     d = np.atleast_2d(np.asarray(shifts, dtype=float))
-    c = np.sqrt(1 - sines[:, 0] ** 2 - sines[:, 1] ** 2)
+    c = cosines(sines)
     return sines[:, :1] * d[None, :, 0] + sines[:, 1:2] * d[None, :, 1] + c[:, None] * d[None, :, 2]
 
 
@@ -190,7 +191,7 @@ def angular_mask(sines: np.ndarray, r: np.ndarray, probe: Probe, margin: float =
     phase of P_θu). margin widens the array on each side (e.g. the target radius).
     """
     s = np.asarray(sines, dtype=float)
-    c = np.sqrt(1 - s[:, 0] ** 2 - s[:, 1] ** 2)
+    c = cosines(s)
     foot = np.asarray(r, dtype=float)[None, :2] - np.asarray(r)[2] * s / c[:, None]
     lo = probe.positions[:, :2].min(axis=0) - probe.pitch / 2 - margin
     hi = probe.positions[:, :2].max(axis=0) + probe.pitch / 2 + margin
@@ -263,11 +264,6 @@ def point_fingerprint(freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.nda
     data = np.exp(-1j * (K3 @ r0)).reshape(len(freqs), len(out_sines), len(in_sines))
     return Fingerprint(data.astype(np.complex64), np.asarray(freqs, float), np.asarray(out_sines, float),
                        np.asarray(in_sines, float), c0, r0, name=name, provenance="model:point")
-
-
-def mirror_direction(alpha: float, azimuth: float = 0.0) -> np.ndarray:
-    """Unit vector t̂ of a mirror inclined by alpha (rad, from x towards z) in the plane at azimuth."""
-    return np.array([np.cos(alpha) * np.cos(azimuth), np.cos(alpha) * np.sin(azimuth), np.sin(alpha)])
 
 
 def mirror_response(K3: np.ndarray, length: float, alpha: float, azimuth: float = 0.0) -> np.ndarray:

@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
+
+from .geometry import from_xyz, to_xyz
 
 if TYPE_CHECKING:
     from .acquisition import Acquisition
@@ -53,12 +57,18 @@ class Grid:
     def centred(cls, centre: tuple[float, ...], shape: tuple[int, ...], spacing: float | tuple[float, ...]) -> Grid:
         """Grid of the given shape ((N_x, N_z) or (N_x, N_y, N_z)) whose index N//2 sits on centre."""
         sp = np.broadcast_to(np.asarray(spacing, dtype=float), (len(shape),))
-        axes = [_axis(c - (n // 2) * d, d, n) for c, n, d in zip(centre, shape, sp, strict=True)]
-        if len(shape) == 2:
+        if len(shape) not in (2, 3):
+            raise ValueError(f"shape: expected 2 or 3 dimensions, got {shape}")
+        return cls.from_axes([_axis(c - (n // 2) * d, d, n) for c, n, d in zip(centre, shape, sp, strict=True)])
+
+    @classmethod
+    def from_axes(cls, axes: Sequence[np.ndarray]) -> Grid:
+        """Grid from its axes in array order: (x, z) in 2D, (x, y, z) in 3D (the order of `axes`)."""
+        if len(axes) == 2:
             return cls(axes[0], axes[1])
-        if len(shape) == 3:
+        if len(axes) == 3:
             return cls(axes[0], axes[2], axes[1])
-        raise ValueError(f"shape: expected 2 or 3 dimensions, got {shape}")
+        raise ValueError(f"axes: expected 2 (x, z) or 3 (x, y, z) axes, got {len(axes)}")
 
     @classmethod
     def for_acquisition(cls, acq: Acquisition, band: tuple[float, float],
@@ -75,7 +85,7 @@ class Grid:
         t = acq.times
         z = z_range or (max(acq.c0 * t[0] / 2, 2 * lam), acq.c0 * t[-1] / 2)
         s = np.abs(acq.sequence.sines).max(axis=0)
-        fan = z[1] * s / np.sqrt(1 - s ** 2)
+        fan = z[1] * s / np.sqrt(1 - s ** 2)  # per axis: tan θ = s/c with c = √(1 − s²) (docs/design.md §4)
         half = [min(a / 2 + f, a) for a, f in zip(acq.probe.aperture, fan, strict=True)]
         x = x_range or (-half[0], half[0])
         if acq.probe.is_linear:
@@ -102,26 +112,30 @@ class Grid:
     def size(self) -> int:
         return int(np.prod(self.shape))
 
+    def to_xyz(self, coords: ArrayLike) -> np.ndarray:
+        """Grid coordinates ((x, z) in 2D, (x, y, z) in 3D; one point or (..., ndim)) → positions
+        (x, y, z), y = 0 in 2D (docs/design.md §3; `fpcore.geometry.to_xyz`)."""
+        return to_xyz(coords, self.ndim)
+
+    def from_xyz(self, r: ArrayLike) -> np.ndarray:
+        """Positions (x, y, z) (one or (..., 3)) → grid coordinates, (x, z) in 2D (docs/design.md §3)."""
+        return from_xyz(r, self.ndim)
+
     def centre_index_point(self) -> np.ndarray:
         """Position (x, y, z) of the node with index N//2 along each axis (y = 0 in 2D)."""
-        c = [a[a.size // 2] for a in self.axes]
-        return np.array([c[0], 0.0, c[1]]) if self.ndim == 2 else np.array(c)
+        return self.to_xyz([a[a.size // 2] for a in self.axes])
 
     def points(self) -> np.ndarray:
         """All nodes as (size, 3) positions (x, y, z), in C order of the grid's shape."""
         mesh = np.meshgrid(*self.axes, indexing="ij")
-        if self.ndim == 2:
-            return np.stack([mesh[0].ravel(), np.zeros(self.size), mesh[1].ravel()], axis=1)
-        return np.stack([m.ravel() for m in mesh], axis=1)
+        return self.to_xyz(np.stack([m.ravel() for m in mesh], axis=1))
 
     def position(self, index: tuple[int, ...]) -> np.ndarray:
         """(x, y, z) of a node given its index tuple."""
-        vals = [a[i] for a, i in zip(self.axes, index, strict=True)]
-        return np.array([vals[0], 0.0, vals[1]]) if self.ndim == 2 else np.array(vals)
+        return self.to_xyz([a[i] for a, i in zip(self.axes, index, strict=True)])
 
-    def nearest_index(self, r: np.ndarray) -> tuple[int, ...]:
+    def nearest_index(self, r: ArrayLike) -> tuple[int, ...]:
         """Index of the node nearest to position r = (x, y, z)."""
-        r = np.asarray(r, dtype=float)
-        coords = (r[0], r[2]) if self.ndim == 2 else (r[0], r[1], r[2])
+        coords = self.from_xyz(r)
         return tuple(int(np.clip(np.rint((c - a[0]) / (a[1] - a[0] if a.size > 1 else 1.0)), 0, a.size - 1))
                      for c, a in zip(coords, self.axes, strict=True))

@@ -23,6 +23,7 @@ import os
 
 import numpy as np
 
+from .geometry import cosines, from_xyz
 from .grid import Grid
 
 __all__ = ["wavevectors", "direct_sum", "GridTransform", "default_threads"]
@@ -43,8 +44,7 @@ def wavevectors(freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, 
     k = 2 * np.pi * np.asarray(freqs, dtype=np.float64) / c0
     so = np.asarray(out_sines, dtype=np.float64)
     si = np.asarray(in_sines, dtype=np.float64)
-    co = np.sqrt(1 - so[:, 0] ** 2 - so[:, 1] ** 2)
-    ci = np.sqrt(1 - si[:, 0] ** 2 - si[:, 1] ** 2)
+    co, ci = cosines(so), cosines(si)
     kx = k[:, None, None] * (so[None, :, None, 0] + si[None, None, :, 0])
     kz = k[:, None, None] * (co[None, :, None] + ci[None, None, :])
     if ndim == 2:
@@ -55,16 +55,10 @@ def wavevectors(freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, 
     raise ValueError(f"ndim: expected 2 or 3, got {ndim}")
 
 
-def _grid_coords(points: np.ndarray, ndim: int) -> np.ndarray:
-    """(x, y, z) positions → the coordinates matching K's layout ((x, z) in 2D)."""
-    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    return p[:, [0, 2]] if ndim == 2 else p
-
-
 def direct_sum(weights: np.ndarray, K: np.ndarray, points: np.ndarray, chunk: int = 2048) -> np.ndarray:
     """Reference: B(r_p) = Σ_j w_j exp(i K_j·r_p) for positions points (P, 3), in complex128."""
     w = np.asarray(weights, dtype=np.complex128).ravel()
-    coords = _grid_coords(points, K.shape[1])
+    coords = from_xyz(np.asarray(points, dtype=np.float64).reshape(-1, 3), K.shape[1])  # K's layout
     out = np.empty(coords.shape[0], dtype=np.complex128)
     for a in range(0, coords.shape[0], chunk):
         phase = coords[a:a + chunk] @ K.T
@@ -92,7 +86,7 @@ class GridTransform:
         self.complex_dtype = np.complex64 if precision == "single" else np.complex128
         real_dtype = np.float32 if precision == "single" else np.float64
         spacing = np.asarray(grid.spacing)
-        centre = _grid_coords(grid.centre_index_point(), grid.ndim)[0]
+        centre = grid.from_xyz(grid.centre_index_point())
         # Strength ramp e^{iK·r_c}: the grid's index-0 mode sits on the node N//2 (finufft modeord 0).
         self.ramp = np.exp(1j * (K @ centre)).astype(self.complex_dtype)
         pts = [np.mod(K[:, d] * spacing[d] + np.pi, 2 * np.pi) - np.pi for d in range(grid.ndim)]

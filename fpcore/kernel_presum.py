@@ -44,6 +44,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from .geometry import cosines
 from .grid import Grid
 from .kernel import default_threads
 
@@ -478,8 +479,7 @@ class PresumTransform:
         self._tab, self._dtab = _kernel_table(_TAPS, beta)
 
         k = 2 * np.pi * freqs / c0
-        co = np.sqrt(1 - np.sum(so ** 2, axis=1))
-        ci = np.sqrt(1 - np.sum(si ** 2, axis=1))
+        co, ci = cosines(so), cosines(si)  # c = √(1 − s_x² − s_y²) (docs/design.md §4)
         rc = grid.centre_index_point()
         nl = ndim - 1  # lateral dimensions
 

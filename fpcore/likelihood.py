@@ -158,7 +158,7 @@ class Imager:
         for idx in np.ndindex(*tiles):
             sl = tuple(slice(e[i], e[i + 1]) for e, i in zip(edges, idx, strict=True))
             axes = [a[s] for a, s in zip(self.grid.axes, sl, strict=True)]
-            sub = Grid(axes[0], axes[-1], axes[1] if self.grid.ndim == 3 else None)
+            sub = Grid.from_axes(axes)
             out.append((sl, sub))
         return out
 

@@ -45,7 +45,7 @@ def test_plan_reused_across_frames() -> None:
 def test_point_map_peaks_at_its_position(ndim: int) -> None:
     K, grid, _ = _geometry(ndim, np.random.default_rng(0))
     r = np.array([0.9e-3, -0.3e-3, 20.6e-3]) if ndim == 3 else np.array([0.9e-3, 0.0, 20.6e-3])
-    coords = r[[0, 2]] if ndim == 2 else r
+    coords = grid.from_xyz(r)
     data = np.exp(-1j * (K @ coords))  # a point at r: R_θθ ∝ e^{-iK·r} (docs/design.md §7 sign note)
     m = np.abs(GridTransform(K, grid, eps=1e-5)(data))
     peak = grid.position(np.unravel_index(int(m.argmax()), m.shape))

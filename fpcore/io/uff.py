@@ -70,6 +70,7 @@ import numpy as np
 import scipy.fft as sfft
 
 from fpcore.acquisition import Acquisition, PlaneWaveSequence, Probe
+from fpcore.geometry import cosines
 
 __all__ = [
     "UFFError",
@@ -102,7 +103,7 @@ class UFFError(ValueError):
 def sines_to_angles(sines: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Direction sines (N, 2) -> USTB (azimuth, elevation) in radians (see module docs)."""
     s = np.asarray(sines, dtype=np.float64).reshape(-1, 2)
-    c = np.sqrt(1.0 - s[:, 0] ** 2 - s[:, 1] ** 2)
+    c = cosines(s)
     return np.arctan2(s[:, 0], c), np.arcsin(s[:, 1])
 
 

@@ -57,7 +57,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft as sfft
 
-from .waves import Band, TimeWindow, cosines
+from ..geometry import cosines
+from .waves import Band, TimeWindow
 
 __all__ = ["ScatteringLayer", "DiffuseBackground"]
 
@@ -245,7 +246,7 @@ class DiffuseBackground:
         w = 0.5 + 0.5 * np.cos(np.pi * x)
         self.weights = (w / np.sqrt(np.sum(w**2))).astype(np.float32)
         self.n_o = self.s_out.shape[0]
-        c_o = np.sqrt(1.0 - np.sum(self.s_out**2, axis=1))
+        c_o = cosines(self.s_out)
         t = window.t0 + np.arange(self.n_bb) * self.dt
         t_on = layer.z_surface * (cosines(s)[None, :] + c_o[:, None]) / c0  # (N_o, N_θ)
         tau = (t[None, None, :] - t_on[:, :, None]).astype(np.float32)

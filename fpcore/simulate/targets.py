@@ -32,10 +32,11 @@ from typing import Protocol
 
 import numpy as np
 
+from ..geometry import cosines, from_xyz, mirror_direction
 from .foldy_lax import foldy_lax_excitation, passive_strength
 from .partial_wave import Elastic, cylinder_coefficients, sphere_coefficients
 from .special import hankel2_orders, legendre_orders, n_terms, sph_hankel2_orders
-from .waves import cosines, incident_phase, radiate_points
+from .waves import incident_phase, radiate_points
 
 __all__ = [
     "Target",
@@ -134,12 +135,10 @@ def _series_transfer(coef: np.ndarray, elements: np.ndarray, sines: np.ndarray, 
     k = 2 * np.pi * freqs / c0
     n_f, n_n = coef.shape
     n_u, n_i = el.shape[0], sines.shape[0]
-    kin = _hat_in(sines)
+    kin = from_xyz(_hat_in(sines), dim)  # 2D: the x–z plane (docs/design.md §3)
     if dim == 2:
-        kin = kin[:, [0, 2]] / np.linalg.norm(kin[:, [0, 2]], axis=1, keepdims=True)
-        vec = el[:, [0, 2]] - rc[None, [0, 2]]
-    else:
-        vec = el - rc[None, :]
+        kin = kin / np.linalg.norm(kin, axis=1, keepdims=True)
+    vec = from_xyz(el, dim) - from_xyz(rc, dim)[None, :]
     dist = np.linalg.norm(vec, axis=1)
     if np.any(dist <= 0):
         raise ValueError("target: an element lies at the scatterer's centre")
@@ -208,11 +207,6 @@ class PointCluster:
             return last[m]
 
         return radiate_points(pts, t, elements, sines, freqs, c0, self.dim, excitation=excitation)
-
-
-def mirror_direction(alpha: float, azimuth: float = 0.0) -> np.ndarray:
-    """Unit vector of a segment tilted by α from the x axis towards +z, turned by `azimuth` about z."""
-    return np.array([np.cos(alpha) * np.cos(azimuth), np.cos(alpha) * np.sin(azimuth), np.sin(alpha)])
 
 
 @dataclass

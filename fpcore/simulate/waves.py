@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft as sfft
 
+from ..geometry import cosines
 from .special import hankel2_0
 
 __all__ = [
@@ -139,12 +140,6 @@ class TimeWindow:
         f = self.freqs()[bins]
         ph = (np.exp(-2j * np.pi * f * self.t0) / self.fs).astype(np.complex64)
         return np.ascontiguousarray(np.transpose(spec * ph, (2, 0, 1)), dtype=np.complex64)
-
-
-def cosines(sines: np.ndarray) -> np.ndarray:
-    """c = √(1 − s_x² − s_y²) per direction."""
-    s = np.asarray(sines, dtype=np.float64)
-    return np.sqrt(1.0 - s[:, 0] ** 2 - s[:, 1] ** 2)
 
 
 def green(k: float, d: np.ndarray, dim: int) -> np.ndarray:
