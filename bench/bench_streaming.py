@@ -1,5 +1,5 @@
 """Streaming benchmark: sustained frames/s and publish → detection latency of the whole pipeline
-(publisher + processor + recorder in one process over zenoh on loopback; services.publisher.run_pipeline),
+(publisher + processor + recorder in one process over zenoh on loopback; services.nodes.local.run_pipeline),
 with the share of processor time in each stage (docs/design.md §7, §8: speed is measured by scripts).
 
     python bench/bench_streaming.py                 # 3D sinking-sphere (quick) and 2D muscle-fibres (quick)
@@ -29,9 +29,10 @@ from typing import Any
 
 from fpcore.acquisition import Acquisition
 from fpcore.io import read_uff, write_uff
-from services.processor import STAGES, ProcessorConfig
-from services.publisher import run_pipeline
-from services.sources import AcquisitionSource, FingerprintSpec
+from services.nodes.local import run_pipeline
+from services.nodes.processor import STAGES, ProcessorConfig
+from services.registry import FingerprintSpec
+from services.sources import AcquisitionSource
 
 CACHE = Path("out/bench/cache")
 

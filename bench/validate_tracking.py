@@ -124,9 +124,9 @@ def summarise(res: dict[str, Any]) -> dict[str, Any]:
 
 
 def figure(path: str | Path, res: dict[str, Any]) -> None:
-    """The tracks figure of `services.figures.tracks_over_confocal`, with the argmax picks and the
+    """The tracks figure of `services.viewing.figures.tracks_over_confocal`, with the argmax picks and the
     Cramér–Rao radius of each track."""
-    from services.figures import tracks_over_confocal
+    from services.viewing.figures import tracks_over_confocal
 
     frames: dict[int, dict[str, Any]] = {}
     for t, rs in res["rows"].items():

@@ -16,7 +16,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from services.messages import MESSAGE_TYPES, ArrayDescriptor, Message
+from services.arrays import ArrayDescriptor
+from services.messages import MESSAGE_TYPES, Message
 
 __all__ = ["DEFAULT_DIR", "header_schema", "render", "stale", "write", "main"]
 

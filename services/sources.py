@@ -29,7 +29,10 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from services.messages import RFFrame
-from services.wire import decode_header, encode_with_header, extract_header, keys, parse_key
+from services.recording import iter_recording
+from services.registry import FingerprintSpec
+from services.topics import keys, parse_key
+from services.wire import decode_header, encode_with_header, extract_header
 
 if TYPE_CHECKING:  # pragma: no cover
     import zenoh
@@ -39,7 +42,6 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "AcquisitionSource",
-    "FingerprintSpec",
     "IngestSource",
     "Item",
     "MCAPSource",
@@ -48,7 +50,6 @@ __all__ = [
     "UFFSource",
     "born_frames",
     "frame_item",
-    "iter_recording",
 ]
 
 
@@ -61,22 +62,6 @@ class Item:
     frame_index: int | None
     t_s: float
     trusted: bool = True
-
-
-@dataclass
-class FingerprintSpec:
-    """A dictionary entry to build: a calibration acquisition of the target alone at ``r0`` or a model
-    spec (``"point"``, ``"mirror:L=2mm,alpha=10"``) centred at ``r0`` (docs/design.md §4.4–4.5)."""
-
-    name: str
-    calibration: Acquisition | None = None
-    model: str | None = None
-    r0: tuple[float, float, float] | None = None
-    diameter: float | None = None
-
-    def __post_init__(self) -> None:
-        if (self.calibration is None) == (self.model is None):
-            raise ValueError(f"fingerprint {self.name!r}: give exactly one of a calibration or a model spec")
 
 
 class Source(Protocol):
@@ -187,18 +172,6 @@ class UFFSource(AcquisitionSource):
         super().__init__(read_uff(self.path, dataset), repeat=repeat)
 
 
-def iter_recording(path: str | Path) -> Iterator[tuple[str, bytes, int, int]]:
-    """``(key, payload, log_time_ns, publish_time_ns)`` of every message of an MCAP file in file order.
-
-    Non-seeking and tolerant: a file whose writer was killed yields every message of its complete
-    chunks and stops at the damage (stack notes).
-    """
-    from services.recorder import iter_raw
-
-    for _schema, channel, msg in iter_raw(path):
-        yield channel.topic, bytes(msg.data), int(msg.log_time), int(msg.publish_time)
-
-
 class MCAPSource:
     """The ``…/rf`` messages of a recording (same bytes), with their log times for original timing.
 
@@ -240,7 +213,7 @@ class IngestSource:
     """
 
     def __init__(self, rig: str, depth: int = 16) -> None:
-        self.key = f"{keys(rig).rf.rsplit('/', 1)[0]}/ingest"
+        self.key = keys(rig).ingest
         self._q: queue.Queue[Item | None] = queue.Queue(maxsize=depth)
         self._stop = threading.Event()
         self._outer = threading.Event()

@@ -36,14 +36,8 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ValidationError
 
-from services.messages import (
-    MESSAGE_TYPES,
-    VERSION_PATTERN,
-    ArrayDescriptor,
-    ArrayFieldError,
-    ErrorReport,
-    Message,
-)
+from services.arrays import ArrayDescriptor, ArrayFieldError
+from services.messages import MESSAGE_TYPES, VERSION_PATTERN, ErrorReport, Message
 
 __all__ = [
     "ALIGN",
@@ -51,9 +45,7 @@ __all__ = [
     "MAGIC",
     "MAX_HEADER_BYTES",
     "PREFIX_SIZE",
-    "TOPICS",
     "Header",
-    "Keys",
     "WireError",
     "decode",
     "decode_header",
@@ -62,8 +54,6 @@ __all__ = [
     "error_report",
     "extract_header",
     "header_bytes",
-    "keys",
-    "parse_key",
 ]
 
 MAGIC = b"FPWIRE01"
@@ -414,99 +404,3 @@ def error_report(exc: WireError, key: str, payload: Any = None, node: str = "") 
         frame_index=frame_index, key=key, field=exc.field, problem=exc.problem[:2000],
         header_excerpt=excerpt[:1024], node=node,
     )
-
-
-# -------------------------------------------------------------------------------------- key expressions
-
-#: topic (last key chunk) → schema name published there.
-TOPICS: dict[str, str] = {
-    "rf": "RFFrame",
-    "gamma": "GammaMap",
-    "image": "ConfocalImage",
-    "detections": "Detections",
-    "tracks": "Tracks",
-    "status": "Status",
-    "errors": "ErrorReport",
-}
-_RIG_RE = re.compile(r"^(\*|[A-Za-z0-9_.\-]+)$")
-
-
-@dataclass(frozen=True)
-class Keys:
-    """Key expressions of one rig (``fp/<rig>/...``); rig ``"*"`` gives wildcard subscriptions."""
-
-    rig: str
-
-    def __post_init__(self) -> None:
-        if not isinstance(self.rig, str) or not _RIG_RE.match(self.rig):
-            raise ValueError(f"rig: expected letters, digits, '_', '-', '.' (or '*'), got {self.rig!r}")
-
-    def _k(self, topic: str) -> str:
-        return f"fp/{self.rig}/{topic}"
-
-    @property
-    def rf(self) -> str:
-        return self._k("rf")
-
-    @property
-    def gamma(self) -> str:
-        return self._k("gamma")
-
-    @property
-    def image(self) -> str:
-        return self._k("image")
-
-    @property
-    def detections(self) -> str:
-        return self._k("detections")
-
-    @property
-    def tracks(self) -> str:
-        return self._k("tracks")
-
-    @property
-    def status(self) -> str:
-        return self._k("status")
-
-    @property
-    def errors(self) -> str:
-        return self._k("errors")
-
-    @property
-    def dictionary(self) -> str:
-        """Queryable of the fingerprint dictionary: ``fp/<rig>/dictionary/**``."""
-        return self._k("dictionary/**")
-
-    def dictionary_entry(self, name: str) -> str:
-        """Key of one dictionary entry, ``fp/<rig>/dictionary/<name>``."""
-        if not name or any(c in name for c in "*$?#") or name.startswith("/") or name.endswith("/"):
-            raise ValueError(f"name: expected a plain key chunk path, got {name!r}")
-        return self._k(f"dictionary/{name}")
-
-    @property
-    def all(self) -> str:
-        """Everything of the rig, ``fp/<rig>/**`` (what the recorder subscribes to)."""
-        return self._k("**")
-
-    def for_message(self, msg: Message | type[Message]) -> str:
-        """Key a message type is published on."""
-        cls = msg if isinstance(msg, type) else type(msg)
-        name = cls.model_fields["schema_name"].default
-        topic = next((t for t, s in TOPICS.items() if s == name), None)
-        if topic is None:
-            raise ValueError(f"schema_name: no topic for {name!r}")
-        return self._k(topic)
-
-
-def keys(rig: str) -> Keys:
-    """Key expressions of a rig, e.g. ``keys("bench").rf == "fp/bench/rf"``."""
-    return Keys(rig)
-
-
-def parse_key(key: str) -> tuple[str, str]:
-    """``"fp/<rig>/<topic...>"`` → ``(rig, topic)``; ValueError for other keys."""
-    parts = str(key).split("/", 2)
-    if len(parts) != 3 or parts[0] != "fp" or not parts[1] or not parts[2]:
-        raise ValueError(f"key: expected 'fp/<rig>/<topic>', got {key!r}")
-    return parts[1], parts[2]
-

@@ -19,8 +19,10 @@ from mcap.reader import make_reader
 from services.bus import BusConfig, free_port, open_session, put_message, wait_for_matching, wait_for_token
 from services.cli import main
 from services.messages import Status, examples
-from services.recorder import Recorder, _Received, _Segment, iter_raw, recover
-from services.wire import decode, encode, keys
+from services.nodes.recorder import Recorder, _Received, _Segment
+from services.recording import iter_raw, recover
+from services.topics import ALL_RIGS, keys
+from services.wire import decode, encode
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -60,7 +62,7 @@ def test_kill9_recorder_then_recover_keeps_everything_flushed(tmp_path, capsys) 
         with open_session(BusConfig(listen=[f"tcp/127.0.0.1:{port}"], connect=[])) as s:
             proc = _start_recorder(["--rig", rig, "-o", str(path), "--flush-interval", "0.5", "--connect",
                                     f"tcp/127.0.0.1:{port}"], tmp_path / "rec.log")
-            assert wait_for_token(s, f"fp/{rig}/alive/recorder", 20)
+            assert wait_for_token(s, keys(rig).alive("recorder"), 20)
             k = keys(rig)
             block = zenoh.CongestionControl.BLOCK
             status_pub = s.declare_publisher(k.status, congestion_control=block)
@@ -105,7 +107,7 @@ def test_rotation_by_size_and_clean_close(tmp_path) -> None:
     with open_session(BusConfig(listen=[f"tcp/127.0.0.1:{port}"], connect=[])) as s_rec, \
             open_session(BusConfig(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"])) as s:
         with Recorder(s_rec, tmp_path / "rot.mcap", rig=rig, flush_interval=0.1, max_bytes=12_000) as rec:
-            assert wait_for_token(s, f"fp/{rig}/alive/recorder", 20)
+            assert wait_for_token(s, keys(rig).alive("recorder"), 20)
             pub = s.declare_publisher(keys(rig).rf, congestion_control=zenoh.CongestionControl.BLOCK)
             assert wait_for_matching(pub, 20)
             for i in range(30):
@@ -129,19 +131,20 @@ def test_rotation_by_size_and_clean_close(tmp_path) -> None:
 @pytest.mark.parametrize("compression", ["none", "zstd"])
 def test_recover_truncated_file_keeps_complete_chunks(tmp_path, compression) -> None:
     path = tmp_path / "t.mcap"
-    seg = _Segment(path, compression, chunk_size=1 << 20, key_expr="fp/**")
+    seg = _Segment(path, compression, chunk_size=1 << 20, key_expr=ALL_RIGS)
     msgs = [encode(Status(node="n", frames_processed=i, timestamp=0.0)) for i in range(50)]
     bad = b"FPWIRE01garbage"
     for i, payload in enumerate(msgs):
-        seg.write(_Received("fp/t/status", payload, None, 1_000 + i, 1_000 + i))
+        seg.write(_Received(keys("t").status, payload, None, 1_000 + i, 1_000 + i))
         if i % 10 == 9:
             seg.flush()  # chunks of 10 messages
-    seg.write(_Received("fp/t/status", bad, None, 2_000, 2_000))
+    seg.write(_Received(keys("t").status, bad, None, 2_000, 2_000))
     seg.finish()
     full = recover(path, tmp_path / "full.mcap")
     assert full["complete"] and full["messages"] == 51
     schemas = {c.topic + "|" + (s.name if s else "") for s, c, _ in iter_raw(tmp_path / "full.mcap")}
-    assert schemas == {"fp/t/status|Status", "fp/t/status|unknown"}  # the raw bad message has its own channel
+    status = keys("t").status
+    assert schemas == {f"{status}|Status", f"{status}|unknown"}  # the raw bad message has its own channel
     with open(path, "rb") as f:
         chunks = make_reader(f).get_summary().chunk_indexes
     assert len(chunks) == 6

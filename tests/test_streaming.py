@@ -24,11 +24,13 @@ import pytest
 from fpcore.io import write_uff
 from services.bus import BusConfig, FifoSlot, LatestSlot, free_port, open_session, wait_for_token
 from services.messages import RFFrame
-from services.processor import Processor, ProcessorConfig, dictionary_request
-from services.publisher import Publisher
-from services.recorder import iter_raw
-from services.sources import AcquisitionSource, FingerprintSpec, IngestSource, MCAPSource, born_frames
-from services.wire import decode, decode_header, encode, encode_with_header, keys
+from services.nodes.processor import Processor, ProcessorConfig
+from services.nodes.publisher import Publisher
+from services.recording import iter_raw
+from services.registry import FingerprintSpec, dictionary_request
+from services.sources import AcquisitionSource, IngestSource, MCAPSource, born_frames
+from services.topics import keys
+from services.wire import decode, decode_header, encode, encode_with_header
 
 ROOT = Path(__file__).resolve().parent.parent
 GRID = ["--x=-5mm:5mm", "--z=10mm:22mm", "--spacing=0.25mm"]  # small grid: FFTW planning takes seconds
@@ -182,7 +184,7 @@ def test_end_to_end_record_and_replay(data, tmp_path) -> None:
             assert channel.message_encoding == "fpwire"
             schemas[channel.topic] = schema.name
         for topic in ("rf", "gamma", "image", "detections", "tracks"):
-            assert len(rec[f"fp/{rig}/{topic}"]) == n, topic
+            assert len(rec[k.topic(topic)]) == n, topic
         assert schemas[k.rf] == "RFFrame" and schemas[k.detections] == "Detections"
         assert len(rec[k.status]) >= 1
         sent = {encode(RFFrame.from_acquisition(f)) for f in frames}
@@ -243,8 +245,8 @@ def test_malformed_frames_are_reported_and_recorded(data, tmp_path) -> None:
             p.wait_ready()
         k = keys(rig)
         with open_session(client(port)) as s:
-            assert wait_for_token(s, f"fp/{rig}/alive/processor", 30)
-            assert wait_for_token(s, f"fp/{rig}/alive/recorder", 30)
+            assert wait_for_token(s, k.alive("processor"), 30)
+            assert wait_for_token(s, k.alive("recorder"), 30)
             col = Collector(s, rig)
             import zenoh
 
@@ -318,7 +320,7 @@ def test_dictionary_queryable(data) -> None:
     with open_session(BusConfig(listen=[f"tcp/127.0.0.1:{port}"], connect=[])) as s_proc, \
             open_session(client(port)) as s:
         with Processor(s_proc, cfg, [FingerprintSpec("marker", calibration=data["cal"])]) as node:
-            assert wait_for_token(s, f"fp/{rig}/alive/processor", 20)
+            assert wait_for_token(s, keys(rig).alive("processor"), 20)
             listing = dictionary_request(s, rig, "list")
             assert listing["ok"] and [e["name"] for e in listing["entries"]] == ["marker"]
             assert listing["entries"][0]["built"] and listing["entries"][0]["n_s"] >= 1
@@ -364,9 +366,9 @@ def test_ingest_validates_and_forwards(data) -> None:
         th.start()
         try:
             col = Collector(s, rig)
-            assert wait_for_token(s, f"fp/{rig}/alive/publisher", 20)  # declared after the ingest subscription
-            s.put(f"fp/{rig}/ingest", bad)
-            s.put(f"fp/{rig}/ingest", good)
+            assert wait_for_token(s, keys(rig).alive("publisher"), 20)  # declared after the ingest subscription
+            s.put(keys(rig).ingest, bad)
+            s.put(keys(rig).ingest, good)
             col.wait(keys(rig).rf, 1)
             errs = col.wait(keys(rig).errors, 1)
             with col._lock:
@@ -377,7 +379,7 @@ def test_ingest_validates_and_forwards(data) -> None:
             th.join(timeout=10)
     assert len(forwarded) == 1 and forwarded[0][0] == good
     assert decode_header(forwarded[0][1]).frame_index == 0  # the header travels as the attachment
-    assert len(errs) == 1 and errs[0].node == "publisher" and errs[0].key == f"fp/{rig}/ingest"
+    assert len(errs) == 1 and errs[0].node == "publisher" and errs[0].key == keys(rig).ingest
     assert errs[0].frame_index == 9 and "NaN or inf" in errs[0].problem
     assert result["published"] == 1 and result["rejected"] == 1
 

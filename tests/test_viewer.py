@@ -11,8 +11,10 @@ import pytest
 
 from services.cli import main
 from services.messages import GammaMap
-from services.recorder import iter_raw
-from services.viewer import iter_messages, to_figure, to_rrd
+from services.recording import iter_messages, iter_raw
+from services.topics import PREFIX, keys
+from services.viewing.frame_figure import to_figure
+from services.viewing.rerun_log import to_rrd
 from services.wire import decode
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -29,7 +31,7 @@ def test_sample_recording_decodes_with_current_schemas() -> None:
     n = 0
     for _schema, channel, msg in iter_raw(SAMPLE):
         decoded = decode(msg.data)  # raises WireError on any schema drift
-        assert channel.topic.startswith("fp/") and channel.message_encoding == "fpwire"
+        assert channel.topic.startswith(f"{PREFIX}/") and channel.message_encoding == "fpwire"
         assert decoded.schema_name == channel.metadata.get("schema_name", decoded.schema_name)
         n += 1
     assert n > 0
@@ -115,7 +117,8 @@ def test_live_view_logs_the_bus_to_rrd(tmp_path: Path, serve: bool) -> None:
     import zenoh
 
     from services.bus import EPHEMERAL, BusConfig, free_port, open_session, wait_for_matching, wait_for_token
-    from services.viewer import live_to_rrd, serve_loopback
+    from services.viewing.rerun_log import live_to_rrd
+    from services.viewing.server import serve_loopback
 
     hub = f"tcp/127.0.0.1:{free_port()}"
     stop = threading.Event()
@@ -132,7 +135,7 @@ def test_live_view_logs_the_bus_to_rrd(tmp_path: Path, serve: bool) -> None:
                 stats=live, grpc_url=viewer.grpc_url if viewer else None)))
             thread.start()
             try:
-                assert wait_for_token(session, "fp/demo/alive/viewer", 20.0)
+                assert wait_for_token(session, keys("demo").alive("viewer"), 20.0)
                 # One blocking publisher per key, each matched before the first put: a plain session.put
                 # drops under load (congestion control DROP) and a put before the subscription arrives is lost.
                 n = 0
@@ -197,7 +200,7 @@ def _assert_loopback_only(*ports: int) -> None:
     connection to each port through each non-loopback address of this machine is refused."""
     import socket
 
-    from services.viewer import listening_addresses
+    from services.viewing.server import listening_addresses
 
     for port in ports:
         listeners = listening_addresses(port=port)
@@ -243,7 +246,7 @@ def test_view_serve_binds_loopback_only(tmp_path: Path) -> None:
     import threading
     import urllib.request
 
-    from services.viewer import listening_addresses
+    from services.viewing.server import listening_addresses
 
     if not Path("/proc/net/tcp").exists():
         pytest.skip("needs Linux /proc to check the listening sockets")

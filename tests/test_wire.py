@@ -28,6 +28,7 @@ from services.messages import (
     Track,
     Tracks,
 )
+from services.topics import keys, parse_key
 from services.wire import (
     ALIGN,
     MAGIC,
@@ -40,8 +41,6 @@ from services.wire import (
     error_report,
     extract_header,
     header_bytes,
-    keys,
-    parse_key,
 )
 
 # ------------------------------------------------------------------------------------------- fixtures
@@ -99,7 +98,7 @@ def make_status() -> Status:
 
 
 def make_error() -> ErrorReport:
-    return ErrorReport(frame_index=3, key="fp/bench/rf", field="rf", problem="contains NaN", timestamp=1.0)
+    return ErrorReport(frame_index=3, key=keys("bench").rf, field="rf", problem="contains NaN", timestamp=1.0)
 
 
 MAKERS = {
@@ -552,11 +551,11 @@ def test_error_report_from_wire_error() -> None:
     decode(bad).rf[0, 0, 0] = np.nan
     with pytest.raises(WireError) as info:
         decode(bytes(bad))
-    rep = error_report(info.value, "fp/bench/rf", bytes(bad), node="proc")
-    assert (rep.frame_index, rep.field, rep.key) == (7, "rf", "fp/bench/rf")
+    rep = error_report(info.value, keys("bench").rf, bytes(bad), node="proc")
+    assert (rep.frame_index, rep.field, rep.key) == (7, "rf", keys("bench").rf)
     assert "expected finite" in rep.problem and rep.header_excerpt.startswith('{"schema_name":"RFFrame"')
     assert decode(encode(rep)) == rep
-    junk = error_report(WireError("magic", "bad"), "fp/bench/rf", b"garbage")
+    junk = error_report(WireError("magic", "bad"), keys("bench").rf, b"garbage")
     assert junk.frame_index is None and "garbage" in junk.header_excerpt
 
 

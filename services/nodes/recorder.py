@@ -1,4 +1,4 @@
-"""Recorder node (`fp record`) and salvage of broken recordings (`fp recover`) (docs/design.md §2, §7, stack notes).
+"""Recorder node (`fp record`) (docs/design.md §2, §7, stack notes).
 
 Every message on ``fp/**`` (or one rig's ``fp/<rig>/**``) goes to MCAP, byte for byte:
 
@@ -13,7 +13,7 @@ Every message on ``fp/**`` (or one rig's ``fp/<rig>/**``) goes to MCAP, byte for
   sequence = per-channel counter;
 * uncompressed by default (≈ 1 GB/s here; ``zstd`` ≈ 90 MB/s, stack notes); flushed every
   ``flush_interval`` (0.5 s): ``Writer.flush()`` closes the open chunk, so a killed recorder loses at
-  most the last interval (:func:`recover` salvages the rest);
+  most the last interval (``services.recording.recover`` salvages the rest);
 * rotation by size (``max_bytes``) and/or age (``max_seconds``): segments ``<stem>-000.mcap``, …
 
 The zenoh callback only queues, within a byte budget (``max_queue_bytes``, 512 MiB: a slow disk blocks
@@ -23,51 +23,29 @@ rotates.
 
 from __future__ import annotations
 
-import argparse
-import json
 import logging
 import queue
-import struct
 import threading
 import time
 from collections import Counter
-from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import IO, Any
 
 import zenoh
-from mcap.exceptions import McapError
-from mcap.reader import NonSeekingReader
-from mcap.records import Channel, Schema
-from mcap.records import Message as McapMessage
-from mcap.writer import CompressionType, Writer
+from mcap.writer import Writer
 
-from services.bus import add_bus_arguments, bus_from_args, open_session, stop_on_signals, tune_malloc, wait_until
 from services.messages import MESSAGE_TYPES
+from services.nodes.base import Node
+from services.recording import COMPRESSION, MESSAGE_ENCODING, UNKNOWN_SCHEMA
 from services.schemas_gen import render
+from services.topics import ALL_RIGS
 from services.wire import WireError, decode_header, extract_header
 
-__all__ = [
-    "MESSAGE_ENCODING",
-    "Recorder",
-    "add_record_parser",
-    "add_recover_parser",
-    "iter_raw",
-    "recover",
-    "run_record",
-    "run_recover",
-]
+__all__ = ["Recorder"]
 
 log = logging.getLogger("fp.recorder")
-
-MESSAGE_ENCODING = "fpwire"
-UNKNOWN_SCHEMA = json.dumps({
-    "$schema": "https://json-schema.org/draft/2020-12/schema", "title": "unknown",
-    "description": "Header unreadable or of an unsupported schema/version; the payload is recorded raw.",
-}, indent=2).encode()
-_COMPRESSION = {"none": CompressionType.NONE, "zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4}
 
 
 @dataclass
@@ -102,8 +80,8 @@ class _Segment:
     def __init__(self, path: Path, compression: str, chunk_size: int, key_expr: str) -> None:
         self.path = path
         self.file: IO[bytes] = open(path, "wb")  # closed in finish()
-        self.writer = Writer(self.file, chunk_size=chunk_size, compression=_COMPRESSION[compression])
-        self.writer.start(profile="", library="fingerprint services.recorder")
+        self.writer = Writer(self.file, chunk_size=chunk_size, compression=COMPRESSION[compression])
+        self.writer.start(profile="", library="fingerprint services.nodes.recorder")
         self.writer.add_metadata("fingerprint", {"wire": "FPWIRE01", "message_encoding": MESSAGE_ENCODING,
                                                  "key_expr": key_expr,
                                                  "started": datetime.now(timezone.utc).isoformat()})
@@ -147,20 +125,23 @@ class _Segment:
         self.file.close()
 
 
-class Recorder:
-    """Records ``key_expr`` (default ``fp/**``) to ``path`` on an open session: ``with Recorder(s, path): ...``."""
+class Recorder(Node):
+    """Records ``key_expr`` (default ``fp/**``) to ``path`` on an open session: ``with Recorder(s, path): ...``.
+    Its liveliness token is ``fp/<rig>/alive/recorder`` (``fp/_any/alive/recorder`` when it records every rig)."""
 
-    def __init__(self, session: zenoh.Session, path: str | Path, key_expr: str = "fp/**", rig: str | None = None,
+    role = "recorder"
+
+    def __init__(self, session: zenoh.Session, path: str | Path, key_expr: str = ALL_RIGS, rig: str | None = None,
                  compression: str = "none", flush_interval: float = 0.5, max_bytes: int | None = None,
                  max_seconds: float | None = None, chunk_size: int = 4 << 20,
                  max_queue_bytes: int = 512 << 20) -> None:
-        if compression not in _COMPRESSION:
-            raise ValueError(f"--compression: expected one of {', '.join(_COMPRESSION)}, got {compression!r}")
+        if compression not in COMPRESSION:
+            raise ValueError(f"--compression: expected one of {', '.join(COMPRESSION)}, got {compression!r}")
         if flush_interval <= 0:
             raise ValueError(f"--flush-interval: expected > 0 s, got {flush_interval}")
-        self.session = session
+        super().__init__(session, rig or "_any")
         self.path = Path(path)
-        self.key_expr = f"fp/{rig}/**" if rig else key_expr
+        self.key_expr = self.keys.all if rig else key_expr
         self.rig = rig
         self.compression = compression
         self.flush_interval = flush_interval
@@ -177,7 +158,6 @@ class Recorder:
         self.files: list[Path] = []
         self._segment: _Segment | None = None
         self._thread: threading.Thread | None = None
-        self._started = False
         self.error: str | None = None
 
     @property
@@ -195,31 +175,18 @@ class Recorder:
         self._segment = _Segment(path, self.compression, self.chunk_size, self.key_expr)
         self.files.append(path)
 
-    def start(self) -> Recorder:
+    def _open(self) -> None:
         self._open_segment()
         self._thread = threading.Thread(target=self._write_loop, name="recorder-writer", daemon=True)
         self._thread.start()
         self._sub = self.session.declare_subscriber(self.key_expr, self._on_sample)
-        self._token = self.session.liveliness().declare_token(f"fp/{self.rig or '_any'}/alive/recorder")
-        self._started = True
-        return self
 
-    def close(self) -> None:
+    def _shutdown(self) -> None:
         """Undeclare the subscriber, write what is queued, finish the file (summary and index)."""
-        if not self._started:
-            return
-        self._started = False
         self._sub.undeclare()
-        self._token.undeclare()
         self._q.put(None)
         if self._thread is not None:
             self._thread.join(timeout=60)
-
-    def __enter__(self) -> Recorder:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         if self._stop.is_set():  # the writer has failed (see ``error``): nothing drains the queue any more
@@ -287,103 +254,3 @@ class Recorder:
     def summary(self) -> dict[str, Any]:
         return {"files": [str(p) for p in self.files], "messages": self.received, "by_key": dict(self.counts),
                 "error": self.error}
-
-
-# ------------------------------------------------------------------------------------------ reading, recover
-def iter_raw(path: str | Path, report: dict[str, Any] | None = None) -> Iterator[tuple[Schema | None, Channel,
-                                                                                       McapMessage]]:
-    """Every message of an MCAP file in file order, with a non-seeking reader (log_time_order=False):
-    a file without summary (killed writer) gives all its complete chunks; the damage, if any, is noted
-    in ``report["error"]`` instead of raising."""
-    with open(path, "rb") as f:
-        reader = NonSeekingReader(f, record_size_limit=None)
-        try:
-            yield from reader.iter_messages(log_time_order=False)
-        except (McapError, struct.error, ValueError, EOFError) as exc:
-            if report is None:
-                return
-            report["error"] = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
-
-
-def recover(broken: str | Path, fixed: str | Path | None = None) -> dict[str, Any]:
-    """Copy every readable message of ``broken`` into a complete MCAP file (default
-    ``<stem>.recovered.mcap``) and report how many were kept, per key."""
-    broken = Path(broken)
-    out = Path(fixed) if fixed else broken.with_name(f"{broken.stem}.recovered.mcap")
-    if out.resolve() == broken.resolve():
-        raise ValueError("recover: the output must differ from the broken file")
-    if not broken.is_file():
-        raise FileNotFoundError(f"{broken}: no such file")
-    report: dict[str, Any] = {"input": str(broken), "output": str(out), "error": None}
-    by_key: Counter[str] = Counter()
-    schemas: dict[int, int] = {}
-    channels: dict[int, int] = {}
-    t_first = t_last = None
-    with open(out, "wb") as f:
-        w = Writer(f, compression=CompressionType.NONE)
-        w.start(profile="", library="fingerprint services.recorder (recovered)")
-        for schema, channel, msg in iter_raw(broken, report):
-            if channel.id not in channels:
-                sid = 0
-                if schema is not None:
-                    if schema.id not in schemas:
-                        schemas[schema.id] = w.register_schema(schema.name, schema.encoding, schema.data)
-                    sid = schemas[schema.id]
-                channels[channel.id] = w.register_channel(channel.topic, channel.message_encoding, sid,
-                                                          dict(channel.metadata))
-            w.add_message(channels[channel.id], msg.log_time, msg.data, msg.publish_time, msg.sequence)
-            by_key[channel.topic] += 1
-            t_first = msg.log_time if t_first is None else min(t_first, msg.log_time)
-            t_last = msg.log_time if t_last is None else max(t_last, msg.log_time)
-        w.finish()
-    report.update(messages=sum(by_key.values()), by_key=dict(by_key), complete=report["error"] is None,
-                  first_log_time_ns=t_first, last_log_time_ns=t_last)
-    return report
-
-
-# ------------------------------------------------------------------------------------------------------- CLI
-def add_record_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("record", help="record every fp/** message to MCAP",
-                       description="Recorder: every message on fp/** (or --rig's) to MCAP, one channel per key, "
-                                   "the wire bytes as they travelled; flushed every --flush-interval.")
-    p.add_argument("-o", "--output", help="MCAP file (default recordings/<rig or all>-<UTC time>.mcap)")
-    p.add_argument("--rig", help="record only fp/<rig>/** (default: every rig, fp/**)")
-    p.add_argument("--compression", choices=tuple(_COMPRESSION), default="none", help="chunk compression "
-                                                                                     "(default none)")
-    p.add_argument("--flush-interval", type=float, default=0.5, help="seconds between flushes (default 0.5)")
-    p.add_argument("--max-bytes", type=int, help="rotate when a file reaches this size")
-    p.add_argument("--max-seconds", type=float, help="rotate when a file is this old")
-    p.add_argument("--duration", type=float, help="stop after this many seconds (default: run until signalled)")
-    add_bus_arguments(p)
-    p.set_defaults(func=run_record)
-
-
-def add_recover_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("recover", help="salvage an MCAP file whose writer was killed",
-                       description="Copies every message of the complete chunks of BROKEN into a complete file "
-                                   "and prints a JSON report (messages kept, per key).")
-    p.add_argument("broken", help="the damaged MCAP file")
-    p.add_argument("-o", "--output", help="output file (default BROKEN.recovered.mcap)")
-    p.set_defaults(func=run_recover)
-
-
-def run_record(args: argparse.Namespace) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    tune_malloc()
-    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
-    out = Path(args.output or f"recordings/{args.rig or 'all'}-{stamp}.mcap")
-    stop = stop_on_signals()
-    with open_session(bus_from_args(args)) as session:
-        rec = Recorder(session, out, rig=args.rig, compression=args.compression, flush_interval=args.flush_interval,
-                       max_bytes=args.max_bytes, max_seconds=args.max_seconds)
-        with rec:
-            print(json.dumps({"ready": True, "key_expr": rec.key_expr, "output": str(out)}), flush=True)
-            wait_until(stop, args.duration)
-        print(json.dumps({"stopped": True, **rec.summary()}), flush=True)
-    return 0 if rec.error is None else 1
-
-
-def run_recover(args: argparse.Namespace) -> int:
-    report = recover(args.broken, args.output)
-    print(json.dumps(report, indent=2))
-    return 0

@@ -26,7 +26,7 @@ import numpy as np
 
 from fpcore import Grid
 
-__all__ = ["Target", "gamma_over_confocal", "targets_over_confocal", "tracks_over_confocal"]
+__all__ = ["Target", "gamma_over_confocal", "peak_position", "targets_over_confocal", "tracks_over_confocal"]
 
 DB_FLOOR = -30.0
 #: (dim, bright) RGB of the γ overlay of the 1st, 2nd, … target (red and green as in the paper).
@@ -51,6 +51,14 @@ class Target:
     diameter: float | None = None
     truth: np.ndarray | None = None
     c_gamma: float | None = None
+
+
+def peak_position(grid: Any, gamma: np.ndarray) -> np.ndarray:
+    """[x, y, z] (m) of γ's maximum on a grid (``fpcore.grid.Grid`` or the wire ``Grid``; y = 0 in 2D)."""
+    idx = np.unravel_index(int(np.argmax(gamma)), gamma.shape)
+    axes = (grid.x, grid.z) if grid.y is None else (grid.x, grid.y, grid.z)
+    p = [float(a[k]) for a, k in zip(axes, idx, strict=True)]
+    return np.array([p[0], 0.0, p[1]] if grid.y is None else p)
 
 
 @dataclass

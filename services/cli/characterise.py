@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .imaging_args import grid_ranges
-from .units import UnitError, parse_band, parse_length
+from services.cli.imaging import grid_ranges
+from services.units import UnitError, parse_band, parse_length
 
 __all__ = ["add_characterise_parser", "run_characterise"]
 

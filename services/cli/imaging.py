@@ -1,7 +1,7 @@
-"""Imaging options shared by `fp locate` and `fp process`, and numerical fingerprint specs.
+"""Imaging options shared by `fp locate`, `fp process` and `fp characterise`.
 
 One place for the band / grid / output-direction / SVD options (lengths in metres unless a unit is
-given, docs/design.md §3) and for the `point | mirror:L=…,alpha=…` model specs (docs/design.md §4.5).
+given, docs/design.md §3). The `point | mirror:L=…,alpha=…` model specs are built by ``services.models``.
 """
 
 from __future__ import annotations
@@ -9,13 +9,9 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-import numpy as np
+from services.units import parse_length, parse_range
 
-from fpcore import Fingerprint, PlaneWaveData, mirror_fingerprint, point_fingerprint
-
-from .units import parse_length, parse_range
-
-__all__ = ["add_imaging_arguments", "grid_ranges", "build_model"]
+__all__ = ["add_imaging_arguments", "grid_ranges"]
 
 
 def add_imaging_arguments(p: argparse.ArgumentParser | Any, peaks_help: str = "peaks reported per frame") -> None:
@@ -44,18 +40,3 @@ def grid_ranges(args: argparse.Namespace) -> dict[str, Any]:
             "y_range": parse_range(y, "--y") if y else None,
             "z_range": parse_range(args.z_range, "--z") if args.z_range else None,
             "spacing": parse_length(args.spacing, "--spacing") if args.spacing else None}
-
-
-def build_model(spec: str, pw: PlaneWaveData, r0: np.ndarray = (0.0, 0.0, 0.0), name: str | None = None) -> Fingerprint:
-    """Numerical fingerprint from a spec: ``point`` or ``mirror:L=2mm,alpha=10`` (alpha in degrees)."""
-    kind, _, rest = spec.partition(":")
-    r0 = np.asarray(r0, dtype=float)
-    if kind == "point":
-        return point_fingerprint(pw.freqs, pw.out_sines, pw.in_sines, pw.c0, r0, name=name or "point")
-    if kind == "mirror":
-        params = dict(kv.split("=", 1) for kv in rest.split(",") if "=" in kv)
-        if "L" not in params:
-            raise ValueError("model: mirror needs L, e.g. mirror:L=2mm,alpha=10")
-        return mirror_fingerprint(pw.freqs, pw.out_sines, pw.in_sines, pw.c0, parse_length(params["L"], "model L"),
-                                  np.deg2rad(float(params.get("alpha", 0.0))), r0=r0, name=name or "mirror")
-    raise ValueError(f"model: unknown model {kind!r} (expected 'point' or 'mirror:L=…,alpha=…')")

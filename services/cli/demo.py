@@ -1,30 +1,33 @@
-"""`fp` — the command line front door.
+"""`fp demo`: the main job on the built-in simulated scenario.
 
-`fp demo` runs the main job on the built-in simulated scenario: two metal spheres in a granular
-suspension (one sinking), seen by a matrix array, streamed publisher → processor → recorder over
-zenoh on loopback; the processor holds each sphere's calibration fingerprint and publishes γ-maps,
-detections (C_γ, PFA, Cramér–Rao precision) and tracks; a live table, an MCAP recording, a JSON
-summary and a PNG of γ over the confocal image come out. `fp locate`, `fp characterise` and
-`fp simulate` work on UFF files; `fp publish|process|record|recover` run the nodes one by one.
+Two metal spheres in a granular suspension (one sinking), seen by a matrix array, streamed publisher →
+processor → recorder over zenoh on loopback (``services.nodes.local.run_pipeline``); the processor holds
+each sphere's calibration fingerprint and publishes γ-maps, detections (C_γ, PFA, Cramér–Rao precision)
+and tracks; a live table, an MCAP recording, a JSON summary and PNGs of γ and of the tracks over the
+confocal image come out.
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
 
-from .characterise import add_characterise_parser
-from .locate import add_locate_parser, run_locate
-from .processor import add_process_parser
-from .publisher import add_publish_parser
-from .recorder import add_record_parser, add_recover_parser
-from .simulate_cmd import add_simulate_parser
-from .viewer import add_figure_parser, add_view_parser
+__all__ = ["add_demo_parser", "cmd_demo"]
 
-__all__ = ["main"]
+
+def add_demo_parser(sub: argparse._SubParsersAction) -> None:
+    demo = sub.add_parser("demo", help="run the main job on the built-in simulated scenario",
+                          description="Publisher, processor and recorder on loopback zenoh with the simulated "
+                                      "sinking-sphere scenario: live table, MCAP recording, summary, PNG.")
+    demo.add_argument("--scenario", default="sinking-sphere", help="simulator scenario (default sinking-sphere)")
+    demo.add_argument("--frames", type=int, default=None, help="number of frames (default: the scenario's)")
+    demo.add_argument("--full", action="store_true", help="full-size scenario (default: quick)")
+    demo.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    demo.add_argument("--rig", default="demo", help="rig name in the key expressions (default demo)")
+    demo.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
+    demo.set_defaults(func=cmd_demo)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -34,11 +37,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from rich.table import Table
 
     from fpcore import Grid
-
-    from .figures import gamma_over_confocal
-    from .processor import ProcessorConfig
-    from .publisher import run_pipeline
-    from .sources import SimulatorSource
+    from services.nodes.local import run_pipeline
+    from services.nodes.processor import ProcessorConfig
+    from services.sources import SimulatorSource
+    from services.viewing.figures import gamma_over_confocal
 
     if args.frames is not None and args.frames < 1:
         raise ValueError(f"--frames: expected at least 1, got {args.frames}")
@@ -101,7 +103,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
                             c_gamma=det["contrast_c_gamma"])
         console.print(f"figure: {png}")
     if history and last.get("image") is not None:
-        from .figures import tracks_over_confocal
+        from services.viewing.figures import tracks_over_confocal
 
         png = Path(args.out) / "demo_tracks.png"
         tracks_over_confocal(png, last["grid"], last["image"], history)
@@ -111,44 +113,3 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def _mm(p: np.ndarray) -> str:
     return ", ".join(f"{v * 1e3:.2f}" for v in p)
-
-
-def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="fp", description="Fingerprint localisation of targets in scattering media.")
-    sub = ap.add_subparsers(dest="command", required=True)
-    demo = sub.add_parser("demo", help="run the main job on the built-in simulated scenario",
-                          description="Publisher, processor and recorder on loopback zenoh with the simulated "
-                                      "sinking-sphere scenario: live table, MCAP recording, summary, PNG.")
-    demo.add_argument("--scenario", default="sinking-sphere", help="simulator scenario (default sinking-sphere)")
-    demo.add_argument("--frames", type=int, default=None, help="number of frames (default: the scenario's)")
-    demo.add_argument("--full", action="store_true", help="full-size scenario (default: quick)")
-    demo.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    demo.add_argument("--rig", default="demo", help="rig name in the key expressions (default demo)")
-    demo.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
-    demo.set_defaults(func=cmd_demo)
-    add_locate_parser(sub)
-    sub.choices["locate"].set_defaults(func=run_locate)
-    add_simulate_parser(sub)
-    add_characterise_parser(sub)
-    # Streaming nodes (issue 4): each registers its subcommand and handler (docs/design.md §2, §7).
-    add_publish_parser(sub)
-    add_process_parser(sub)
-    add_record_parser(sub)
-    add_recover_parser(sub)
-    # Recordings to Rerun / PNG (issue 6).
-    add_view_parser(sub)
-    add_figure_parser(sub)
-    return ap
-
-
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        return int(args.func(args))
-    except (ValueError, OSError) as exc:
-        print(f"fp {args.command}: error: {exc}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -3,6 +3,8 @@
 DATA.uff frames + a fingerprint (a calibration UFF of the target alone at r0, or a numerical model)
 → per frame: detected position(s), γ_max, C_γ and C = (γ_max/γ_M)², PFA, Cramér–Rao precision;
 a table on screen, JSON in SI units with the unit in the key, and a PNG of γ over the confocal image.
+The imaging set-up, the fingerprint construction and the detection step are the processor's
+(``services.pipeline``, ``services.models``).
 """
 
 from __future__ import annotations
@@ -13,21 +15,14 @@ from pathlib import Path
 
 import numpy as np
 
-from fpcore import (
-    Acquisition,
-    Fingerprint,
-    Grid,
-    Imager,
-    ImagingConfig,
-    detect,
-    from_calibration,
-    moving_fingerprint,
-)
+from fpcore import Acquisition, Fingerprint, moving_fingerprint
+from services.cli.imaging import add_imaging_arguments, grid_ranges
+from services.models import build_fingerprint, check_calibration
+from services.pipeline import find_targets, make_imager, truth_error, truth_positions
+from services.registry import FingerprintSpec
+from services.units import parse_band, parse_length, parse_position
 
-from .imaging_args import add_imaging_arguments, build_model, grid_ranges
-from .units import parse_band, parse_length, parse_position
-
-__all__ = ["add_locate_parser", "run_locate", "check_calibration"]
+__all__ = ["add_locate_parser", "run_locate"]
 
 
 def add_locate_parser(sub: argparse._SubParsersAction) -> None:
@@ -52,20 +47,7 @@ def add_locate_parser(sub: argparse._SubParsersAction) -> None:
                    help="keep maxima closer than the diffraction resolution to the grid's border (skipped by "
                         "default: there γ is most often the flank of something outside the region, e.g. the "
                         "rise under a scattering layer's surface)")
-
-
-def check_calibration(cal: Acquisition, data: Acquisition) -> None:
-    """The calibration must come from the same probe, sequence, sampling and sound speed."""
-    if cal.probe.n_elements != data.probe.n_elements or not np.allclose(cal.probe.positions, data.probe.positions,
-                                                                         atol=1e-7):
-        raise ValueError("calibration probe: element positions differ from the data's (same probe expected)")
-    if cal.sequence.n_waves != data.sequence.n_waves or not np.allclose(cal.sequence.sines, data.sequence.sines,
-                                                                          atol=1e-9):
-        raise ValueError("calibration sequence: plane-wave angles differ from the data's (same sequence expected)")
-    if abs(cal.fs - data.fs) > 1e-6 * data.fs:
-        raise ValueError(f"calibration sampling_frequency: {cal.fs:g} Hz, data has {data.fs:g} Hz (same expected)")
-    if abs(cal.c0 - data.c0) > 1e-6 * data.c0:
-        raise ValueError(f"calibration sound_speed: {cal.c0:g} m/s, data has {data.c0:g} m/s (same expected)")
+    p.set_defaults(func=run_locate)
 
 
 def _moving(fp: Fingerprint, text: str, data: Acquisition) -> Fingerprint:
@@ -104,8 +86,7 @@ def run_locate(args: argparse.Namespace) -> int:
     from rich.table import Table
 
     from fpcore.io import read_uff
-
-    from .figures import gamma_over_confocal
+    from services.viewing.figures import gamma_over_confocal
 
     console = Console()
     sel = None
@@ -114,29 +95,23 @@ def run_locate(args: argparse.Namespace) -> int:
         sel = slice(int(a or 0), int(b) if b else None) if ":" in args.frames else [int(a)]
     frames = read_uff(args.data, args.dataset, frames=sel)
     first = frames[0]
-    fc = first.probe.centre_frequency
     band = parse_band(args.band) if args.band else first.default_band()
-    grid = Grid.for_acquisition(first, band, **grid_ranges(args))
-    out_sines = None
-    if args.n_out:
-        from fpcore import output_sines
-        out_sines = output_sines(first.probe, first.c0, band[1], n=args.n_out)
-    imager = Imager(ImagingConfig(grid, band, args.n_freq, out_sines))
+    imager = make_imager(first, band, ranges=grid_ranges(args), n_freq=args.n_freq, n_out=args.n_out)
+    grid = imager.grid
     if args.calibration:
         cal = read_uff(args.calibration, args.dataset)[0]
         check_calibration(cal, first)
         r0, diameter = _r0(args, cal)
-        fp = from_calibration(cal, r0, imager.out_sines_for(cal), band, args.n_freq, diameter=diameter,
-                              svd_threshold=args.svd_threshold, name=Path(args.calibration).stem)
+        spec = FingerprintSpec(Path(args.calibration).stem, calibration=cal, r0=tuple(r0), diameter=diameter)
+    else:
+        spec = FingerprintSpec(args.model.partition(":")[0], model=args.model, r0=(0.0, 0.0, 0.0))
+    fp = build_fingerprint(spec, first, None, imager, band, args.n_freq, args.svd_threshold)
+    if args.calibration:
         console.print(f"fingerprint from {args.calibration}: r0 = {np.round(r0 * 1e3, 2)} mm, N_S = {fp.n_s:.1f}, "
                       f"N_T = {fp.n_t:.1f}, G ≈ {fp.n_s * fp.n_t:.0f}")
-    else:
-        pw0 = imager.plane_waves(first)
-        fp = build_model(args.model, pw0)
     if args.velocity:
         fp = _moving(fp, args.velocity, first)
     console.print(f"{len(frames)} frame(s), band {band[0] / 1e6:.2f}–{band[1] / 1e6:.2f} MHz, grid {grid.shape}")
-    lam = first.c0 / fc
     results = []
     table = Table(title=f"fp locate {args.data}")
     for col in ("frame", "position (mm)", "γ_max", "C_γ", "C", "PFA", "δρ_L, δz_L (mm)", "error (mm)"):
@@ -146,13 +121,12 @@ def run_locate(args: argparse.Namespace) -> int:
         for acq in frames:
             pw = imager.plane_waves(acq)
             gamma = imager.gamma(pw, fp)
-            dets = detect(gamma, grid, lam, acq.probe.aperture[0], band[1] - band[0], acq.c0, name=fp.name,
-                          n_peaks=args.targets, interior=not args.allow_border)
-            truths = [np.asarray(t["position_m"], float) for t in acq.truth.get("targets", []) if "position_m" in t]
+            dets = find_targets(gamma, grid, acq, band, fp.name, args.targets, interior=not args.allow_border)
+            truths = truth_positions(acq.truth)
             row = {"frame_index": acq.frame_index, "timestamp_s": acq.timestamp, "detections": []}
             for d in dets:
                 pos = np.array(d.position_m)
-                err = min((float(np.linalg.norm(pos - t)) for t in truths), default=None)
+                err = truth_error(pos, truths)  # the nearest target, whatever its name
                 row["detections"].append({"fingerprint": d.fingerprint, "position_m": d.position_m,
                                           "gamma_max": d.gamma_max, "c_gamma": d.c_gamma, "c_pfa": d.c_pfa,
                                           "pfa": d.pfa, "precision_m": d.precision_m, "truth_error_m": err})
@@ -171,7 +145,7 @@ def run_locate(args: argparse.Namespace) -> int:
         console.print(f"wrote {args.json}")
     if args.png and dets:
         near = np.array(dets[0].position_m)  # the truth of the target this detection belongs to
-        truth = min(truths, key=lambda t: float(np.linalg.norm(t - near))) if truths else None
+        truth = min((t for _, t in truths), key=lambda t: float(np.linalg.norm(t - near))) if truths else None
         gamma_over_confocal(args.png, grid, imager.confocal(pw), gamma, np.array(dets[0].position_m), truth=truth,
                             title=f"{Path(args.data).name} frame {acq.frame_index}: C_γ = {dets[0].c_gamma:.1f}, "
                                   f"PFA = {dets[0].pfa:.1e}", name=fp.name, diameter=fp.state.get("diameter_m") or None,

@@ -1,0 +1,54 @@
+"""`fp` — the command line front door (``main``; the ``fp`` entry point).
+
+`fp demo` runs the main job on the built-in simulated scenario (``services.cli.demo``). `fp locate`,
+`fp characterise` and `fp simulate` work on UFF files; `fp publish|process|record|recover` run the
+streaming nodes one by one; `fp view` and `fp figure` show recordings. Each command lives in its own
+module here (argument parser and run function); the work is done by the rest of ``services`` and by
+``fpcore``. `fp --version` prints ``fpcore.__version__``, the project's one version.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import fpcore
+from services.cli.characterise import add_characterise_parser
+from services.cli.demo import add_demo_parser
+from services.cli.figure import add_figure_parser
+from services.cli.locate import add_locate_parser
+from services.cli.process import add_process_parser
+from services.cli.publish import add_publish_parser
+from services.cli.record import add_record_parser, add_recover_parser
+from services.cli.simulate import add_simulate_parser
+from services.cli.view import add_view_parser
+
+__all__ = ["build_parser", "main"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="fp", description="Fingerprint localisation of targets in scattering media.")
+    ap.add_argument("--version", action="version", version=f"fp {fpcore.__version__}")
+    sub = ap.add_subparsers(dest="command", required=True)
+    add_demo_parser(sub)
+    add_locate_parser(sub)
+    add_simulate_parser(sub)
+    add_characterise_parser(sub)
+    # Streaming nodes (issue 4): each registers its subcommand and handler (docs/design.md §2, §7).
+    add_publish_parser(sub)
+    add_process_parser(sub)
+    add_record_parser(sub)
+    add_recover_parser(sub)
+    # Recordings to Rerun / PNG (issue 6).
+    add_view_parser(sub)
+    add_figure_parser(sub)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args))
+    except (ValueError, OSError) as exc:
+        print(f"fp {args.command}: error: {exc}", file=sys.stderr)
+        return 2

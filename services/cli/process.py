@@ -1,0 +1,112 @@
+"""`fp process`: run the processor node (``services.nodes.processor``) from the command line.
+
+Fingerprints from calibration UFF files, numerical models or a simulator scenario's calibrations;
+imaging options as `fp locate`; node options (queue mode, frame size limit, status period) and the
+bus options of ``services.bus``. Prints a JSON "ready" line once the node is up and a JSON summary
+when it stops (SIGINT/SIGTERM or ``--duration``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+
+from services.bus import add_bus_arguments, bus_from_args, open_session, stop_on_signals, tune_malloc, wait_until
+from services.cli.imaging import add_imaging_arguments, grid_ranges
+from services.nodes.processor import Processor, ProcessorConfig
+from services.registry import FingerprintSpec
+from services.units import parse_band, parse_length, parse_position
+from services.wire import DEFAULT_MAX_BYTES
+
+__all__ = ["add_process_parser", "config_from_args", "run_process", "specs_from_args"]
+
+log = logging.getLogger("fp.processor")
+
+
+def add_process_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("process", help="run the processor node (γ-maps, detections, tracks)",
+                       description="Processor node: subscribes to fp/<rig>/rf, publishes gamma, image, detections, "
+                                   "tracks, status and errors; dictionary queryable at fp/<rig>/dictionary/**. "
+                                   "Lengths are metres unless a unit is given (25mm).")
+    p.add_argument("--rig", default="demo", help="rig name in the key expressions fp/<rig>/… (default demo)")
+    p.add_argument("--name", default="processor", help="node name (default processor)")
+    src = p.add_argument_group("fingerprint dictionary (at least one, or add at run time)")
+    src.add_argument("--calibration", action="append", default=[], metavar="FILE",
+                     help="UFF calibration (target alone at r0), repeatable; entry named after the file")
+    src.add_argument("--r0", help="calibration target position X,Z[,Y] (default: from the calibration's truth)")
+    src.add_argument("--diameter", help="target size for the time gate, e.g. 10mm (default: from the truth)")
+    src.add_argument("--dataset", help="dataset name inside the calibration UFF")
+    src.add_argument("--model", action="append", default=[], metavar="SPEC",
+                     help="numerical fingerprint 'point' or 'mirror:L=2mm,alpha=10', repeatable")
+    src.add_argument("--scenario", help="calibrations of a simulator scenario's targets (e.g. sinking-sphere)")
+    src.add_argument("--full", action="store_true", help="full-size scenario (default: quick)")
+    img = p.add_argument_group("imaging")
+    add_imaging_arguments(img, peaks_help="peaks reported per fingerprint")
+    img.add_argument("--no-image", action="store_true", help="do not publish the confocal image")
+    img.add_argument("--no-track", action="store_true", help="do not run the tracker")
+    img.add_argument("--track-integrate", type=int, default=1, metavar="K",
+                     help="tracker: search the mean of the last K γ-maps (fog decorrelates, a slow target "
+                          "persists; the track lags by v(K−1)Δt/2; default 1)")
+    node = p.add_argument_group("node")
+    node.add_argument("--queue", choices=("newest", "fifo"), default="newest",
+                      help="newest: live, keep the newest frame, count drops; fifo: replay, block, drop nothing")
+    node.add_argument("--fifo-depth", type=int, default=8, help="FIFO depth in fifo mode (default 8)")
+    node.add_argument("--max-frame-bytes", type=int, default=DEFAULT_MAX_BYTES,
+                      help=f"refuse larger frames (default {DEFAULT_MAX_BYTES})")
+    node.add_argument("--status-period", type=float, default=1.0, help="seconds between Status messages")
+    node.add_argument("--duration", type=float, help="stop after this many seconds (default: run until signalled)")
+    add_bus_arguments(p, listen="tcp/127.0.0.1:7447", connect=None)
+    p.set_defaults(func=run_process)
+
+
+def _xyz(text: str, option: str) -> tuple[float, float, float]:
+    v = parse_position(text, option)
+    return (v[0], v[2] if len(v) == 3 else 0.0, v[1])
+
+
+def specs_from_args(args: argparse.Namespace) -> list[FingerprintSpec]:
+    """Fingerprint specs of the `fp process` options."""
+    from pathlib import Path
+
+    from fpcore.io import read_uff
+
+    specs = []
+    r0 = _xyz(args.r0, "--r0") if args.r0 else None
+    diameter = parse_length(args.diameter, "--diameter") if args.diameter else None
+    for path in args.calibration:
+        cal = read_uff(path, args.dataset)[0]
+        specs.append(FingerprintSpec(Path(path).stem, calibration=cal, r0=r0, diameter=diameter))
+    for i, spec in enumerate(args.model):
+        name = spec.partition(":")[0] + (f"{i}" if len(args.model) > 1 else "")
+        specs.append(FingerprintSpec(name, model=spec, r0=r0))
+    if args.scenario:
+        from services.sources import SimulatorSource
+
+        specs.extend(SimulatorSource(args.scenario, quick=not args.full).fingerprint_specs())
+    return specs
+
+
+def config_from_args(args: argparse.Namespace) -> ProcessorConfig:
+    return ProcessorConfig(
+        rig=args.rig, name=args.name, queue=args.queue, fifo_depth=args.fifo_depth,
+        band=parse_band(args.band) if args.band else None, n_freq=args.n_freq, svd_threshold=args.svd_threshold,
+        **grid_ranges(args), n_out=args.n_out,
+        n_peaks=args.targets, max_frame_bytes=args.max_frame_bytes, publish_image=not args.no_image,
+        track=not args.no_track, track_integrate=args.track_integrate, status_period=args.status_period)
+
+
+def run_process(args: argparse.Namespace) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    tune_malloc()
+    cfg = config_from_args(args)
+    specs = specs_from_args(args)
+    stop = stop_on_signals()
+    with open_session(bus_from_args(args)) as session:
+        with Processor(session, cfg, specs) as node:
+            log.info("processor on %s (%s queue), dictionary %s", node.keys.rf, cfg.queue, node.dictionary)
+            print(json.dumps({"ready": True, "rig": cfg.rig, "dictionary": node.dictionary}), flush=True)
+            wait_until(stop, args.duration)
+        print(json.dumps({"stopped": True, **{k: v for k, v in node.stats().items() if k != "dictionary"}}),
+              flush=True)
+    return 0

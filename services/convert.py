@@ -1,0 +1,78 @@
+"""fpcore results → wire messages (``services.messages``): what the processor publishes for one frame.
+
+Every message carries the input frame's index and acquisition timestamp. Values are made JSON- and
+model-safe here: C_γ is infinite on a map that is zero outside the peak (capped), probabilities are
+clipped to [0, 1], a track's covariance is symmetrised, non-finite or non-numeric fingerprint state is
+left out.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from fpcore import Fingerprint
+from fpcore.metrics import Detection as CoreDetection
+from fpcore.tracking import TrackState
+from services.messages import (
+    ConfocalImage,
+    Detection,
+    Detections,
+    GammaMap,
+    Normalisation,
+    Track,
+    Tracks,
+)
+from services.messages import Grid as WireGrid
+from services.pipeline import FrameResult
+
+__all__ = ["detection", "finite", "frame_messages", "numeric_state", "track"]
+
+
+def finite(v: float, cap: float = 1e300) -> float:
+    """A JSON-safe non-negative number (C_γ is infinite on a map that is zero outside the peak)."""
+    return 0.0 if math.isnan(v) else float(min(max(v, 0.0), cap))
+
+
+def numeric_state(fp: Fingerprint) -> dict[str, float]:
+    """The finite numeric entries of a fingerprint's state q (booleans and strings left out)."""
+    return {k: float(v) for k, v in fp.state.items()
+            if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)}
+
+
+def detection(d: CoreDetection, state: dict[str, float], truth_error_m: float | None) -> Detection:
+    return Detection(fingerprint=d.fingerprint, state=state, position_m=tuple(np.asarray(d.position_m, float).tolist()),
+                     gamma_max=max(float(d.gamma_max), 0.0), contrast_c_gamma=finite(d.c_gamma),
+                     contrast_c=finite(d.c_pfa), pfa=float(np.clip(d.pfa, 0.0, 1.0)),
+                     precision_m=(float(d.precision_m[0]), float(d.precision_m[1])), truth_error_m=truth_error_m)
+
+
+def track(tr: TrackState) -> Track:
+    c = np.asarray(tr.covariance_m2, float)
+    c = 0.5 * (c + c.T)
+    return Track(id=tr.track_id, fingerprint=tr.fingerprint, position_m=tuple(tr.position_m),
+                 velocity_m_s=tuple(tr.velocity_m_s), covariance=tuple(tuple(row) for row in c.tolist()),
+                 confidence=float(np.clip(tr.confidence, 0.0, 1.0)), age=tr.age)
+
+
+def frame_messages(res: FrameResult, frame_index: int, timestamp: float) -> dict[str, Any]:
+    """``{"image": ConfocalImage | None, "gamma": [GammaMap, …], "tracks": Tracks, "detections":
+    Detections}`` of one frame's result."""
+    fi, ts = frame_index, timestamp
+    states = {name: numeric_state(fp) for name, fp in res.fingerprints.items()}
+    dets = [detection(d, states[d.fingerprint], err) for d, err in res.detections]
+    tracks = [track(tr) for tr in res.tracks]
+    wgrid = WireGrid.from_grid(res.grid)
+    r_energy = float(np.vdot(res.pw.data, res.pw.data).real)
+    gammas = []
+    for name, g in res.gammas.items():
+        fp = res.fingerprints[name]
+        g_m = float(np.sqrt(np.mean(np.square(g, dtype=np.float64))))
+        norm = Normalisation(band_hz=res.band, r_energy=r_energy, f_energy=fp.norm2, gamma_m=g_m)
+        gammas.append(GammaMap(frame_index=fi, timestamp=ts, fingerprint=name, state=states[name], grid=wgrid,
+                               gamma=g, normalisation=norm))
+    image = None if res.image is None else ConfocalImage(frame_index=fi, timestamp=ts, grid=wgrid, image=res.image)
+    return {"image": image, "gamma": gammas, "tracks": Tracks(frame_index=fi, timestamp=ts, tracks=tracks),
+            "detections": Detections(frame_index=fi, timestamp=ts, detections=dets)}

@@ -1,0 +1,92 @@
+"""Fingerprint construction for the dictionary entries (docs/design.md §4.4–4.5): calibrations, checked
+against the data they will be matched with, and numerical models from a spec string.
+
+Used by the processing pipeline (``services.pipeline``) and therefore by the processor node and
+`fp locate`; no CLI or bus code here.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from fpcore import Fingerprint, PlaneWaveData, from_calibration, mirror_fingerprint, point_fingerprint
+from services.registry import FingerprintSpec
+from services.units import parse_length
+
+if TYPE_CHECKING:  # pragma: no cover
+    from fpcore import Imager
+    from fpcore.acquisition import Acquisition
+
+__all__ = ["build_fingerprint", "build_model", "calibration_position", "check_calibration"]
+
+
+def build_model(spec: str, pw: PlaneWaveData, r0: np.ndarray = (0.0, 0.0, 0.0), name: str | None = None) -> Fingerprint:
+    """Numerical fingerprint from a spec: ``point`` or ``mirror:L=2mm,alpha=10`` (alpha in degrees)."""
+    kind, _, rest = spec.partition(":")
+    r0 = np.asarray(r0, dtype=float)
+    if kind == "point":
+        return point_fingerprint(pw.freqs, pw.out_sines, pw.in_sines, pw.c0, r0, name=name or "point")
+    if kind == "mirror":
+        params = dict(kv.split("=", 1) for kv in rest.split(",") if "=" in kv)
+        if "L" not in params:
+            raise ValueError("model: mirror needs L, e.g. mirror:L=2mm,alpha=10")
+        return mirror_fingerprint(pw.freqs, pw.out_sines, pw.in_sines, pw.c0, parse_length(params["L"], "model L"),
+                                  np.deg2rad(float(params.get("alpha", 0.0))), r0=r0, name=name or "mirror")
+    raise ValueError(f"model: unknown model {kind!r} (expected 'point' or 'mirror:L=…,alpha=…')")
+
+
+def check_calibration(cal: Acquisition, data: Acquisition) -> None:
+    """The calibration must come from the same probe, sequence, sampling and sound speed."""
+    if cal.probe.n_elements != data.probe.n_elements or not np.allclose(cal.probe.positions, data.probe.positions,
+                                                                         atol=1e-7):
+        raise ValueError("calibration probe: element positions differ from the data's (same probe expected)")
+    if cal.sequence.n_waves != data.sequence.n_waves or not np.allclose(cal.sequence.sines, data.sequence.sines,
+                                                                          atol=1e-9):
+        raise ValueError("calibration sequence: plane-wave angles differ from the data's (same sequence expected)")
+    if abs(cal.fs - data.fs) > 1e-6 * data.fs:
+        raise ValueError(f"calibration sampling_frequency: {cal.fs:g} Hz, data has {data.fs:g} Hz (same expected)")
+    if abs(cal.c0 - data.c0) > 1e-6 * data.c0:
+        raise ValueError(f"calibration sound_speed: {cal.c0:g} m/s, data has {data.c0:g} m/s (same expected)")
+
+
+def calibration_position(spec: FingerprintSpec) -> tuple[np.ndarray, float]:
+    """(r0 (x, y, z) in metres, target diameter in metres) of a calibration spec: the spec's own values,
+    else the calibration's truth (``r0_m``, else its first target's position; ``diameter_m``)."""
+    cal = spec.calibration
+    assert cal is not None
+    truth = cal.truth if isinstance(cal.truth, dict) else {}
+    target = (truth.get("targets") or [{}])[0]
+    if spec.r0 is not None:
+        r0 = np.asarray(spec.r0, float)
+    elif "r0_m" in truth:
+        r0 = np.asarray(truth["r0_m"], float)
+    elif isinstance(target, dict) and "position_m" in target:
+        r0 = np.asarray(target["position_m"], float)
+    else:
+        raise ValueError(f"fingerprint {spec.name!r}: r0 unknown (give r0_m, or a calibration with truth)")
+    if r0.shape != (3,):
+        raise ValueError(f"fingerprint {spec.name!r}: r0 must be (x, y, z) in metres, got {r0.tolist()}")
+    d = spec.diameter
+    if d is None:
+        d = float(truth.get("diameter_m", target.get("diameter_m", 0.0) if isinstance(target, dict) else 0.0))
+    return r0, float(d)
+
+
+def build_fingerprint(spec: FingerprintSpec, acq: Acquisition, pw: PlaneWaveData | None, imager: Imager,
+                      band: tuple[float, float], n_freq: int | None, svd_threshold: float) -> Fingerprint:
+    """The fingerprint of ``spec`` for data of the geometry of ``acq`` (plane waves ``pw`` from ``imager``,
+    computed here for a model when None): a checked calibration (``from_calibration``) or a model centred
+    at the spec's r0 (default: the grid's centre). ValueError when the calibration does not match the
+    data or the spec is wrong."""
+    if spec.calibration is not None:
+        cal = spec.calibration
+        check_calibration(cal, acq)
+        r0, diameter = calibration_position(spec)
+        return from_calibration(cal, r0, imager.out_sines_for(cal), band, n_freq, diameter=diameter,
+                                svd_threshold=svd_threshold, name=spec.name)
+    r0 = np.asarray(spec.r0, float) if spec.r0 is not None else imager.grid.centre_index_point()
+    if r0.shape == (2,):
+        r0 = np.array([r0[0], 0.0, r0[1]])
+    return build_model(str(spec.model), imager.plane_waves(acq) if pw is None else pw, r0, spec.name)

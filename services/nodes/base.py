@@ -1,0 +1,92 @@
+"""What every streaming node shares (docs/design.md §2, §7): start/close on an open zenoh session, use as
+a context manager, its liveliness token ``fp/<rig>/alive/<role>[/<name>]`` (declared last on start, so
+a peer that sees it also sees the node's subscriptions and queryables), its publishers (congestion
+control BLOCK: nothing is discarded at the sender) and error reports on ``fp/<rig>/errors``.
+
+A subclass implements ``_open`` (declare inputs, start threads) and ``_shutdown`` (undeclare inputs,
+drain, stop threads); ``close`` then undeclares the token and the publishers.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any, ClassVar
+
+import zenoh
+
+from services.bus import put_message
+from services.messages import ErrorReport, Message
+from services.topics import Keys
+
+__all__ = ["Node"]
+
+class Node:
+    """Base of the publisher, processor and recorder nodes."""
+
+    role: ClassVar[str] = "node"
+
+    def __init__(self, session: zenoh.Session, rig: str, name: str | None = None) -> None:
+        self.session = session
+        self.keys = Keys(rig)
+        self.name = name or self.role
+        self._pubs: dict[str, zenoh.Publisher] = {}
+        self._token: Any = None
+        self._started = False
+        self.log = logging.getLogger(f"fp.{self.role}")
+
+    # -- lifecycle ---------------------------------------------------------------------------------
+    def _open(self) -> None:
+        """Declare publishers, subscriptions and queryables; start threads (before the token)."""
+
+    def _shutdown(self) -> None:
+        """Undeclare inputs first (no new work), then finish the work in hand (before the token goes)."""
+
+    @property
+    def token_key(self) -> str:
+        return self.keys.alive(self.role, self.name)
+
+    def start(self) -> Node:
+        if self._started:
+            return self
+        self._open()
+        self._token = self.session.liveliness().declare_token(self.token_key)
+        self._started = True
+        return self
+
+    def close(self) -> None:
+        if not self._started:
+            return
+        self._started = False
+        try:
+            self._shutdown()
+        finally:
+            self._token.undeclare()
+            for p in self._pubs.values():
+                p.undeclare()
+            self._pubs = {}
+
+    def __enter__(self) -> Any:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- output -----------------------------------------------------------------------------------------
+    def declare_publishers(self, *topics: str) -> None:
+        """One BLOCK publisher per topic of ``services.topics.TABLE``."""
+        block = zenoh.CongestionControl.BLOCK
+        for topic in topics:
+            self._pubs[topic] = self.session.declare_publisher(self.keys.topic(topic), congestion_control=block)
+
+    def publish(self, topic: str, msg: Message) -> int:
+        """Encode and publish ``msg`` (header as attachment, session timestamp); returns the payload bytes."""
+        return put_message(self._pubs[topic], self.session, msg)
+
+    def report(self, rep: ErrorReport) -> None:
+        """Publish an ErrorReport on ``fp/<rig>/errors`` (logged, never raised)."""
+        self.log.warning("%s refused %s (frame %s): %s: %s", self.name, rep.key, rep.frame_index, rep.field,
+                         rep.problem)
+        try:
+            self.publish("errors", rep)
+        except Exception as exc:  # pragma: no cover - only when the session is going down
+            self.log.error("could not publish an error report: %s", exc)

@@ -1,0 +1,318 @@
+"""The frame pipeline: RF frame → band-limited plane waves → confocal image, one γ-map per fingerprint,
+detections and tracks (docs/design.md §4.3, §4.7–4.10).
+
+:class:`Pipeline` holds the imaging set-up (``fpcore.Imager`` on a grid for the frames' geometry), the
+fingerprint dictionary (``services.registry.Entry``, built with ``services.models``) and the tracker.
+They are set up for the geometry of the first frame (or calibration) and again whenever the geometry
+(probe, sequence, sampling, sound speed) or a parameter changes. :meth:`Pipeline.process` is
+thread-safe (one lock for processing and dictionary changes) and returns a :class:`FrameResult`;
+``services.convert`` turns it into wire messages.
+
+No zenoh here: the processor node (``services.nodes.processor``) runs it on the bus, `fp locate`
+shares its imaging set-up (:func:`make_imager`), fingerprint construction and detection step
+(:func:`find_targets`, :func:`truth_error`), and tests and notebooks run it offline.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from fpcore import Acquisition, Fingerprint, Grid, Imager, ImagingConfig, detect
+from fpcore.acquisition import PlaneWaveData
+from fpcore.metrics import Detection
+from fpcore.tracking import Tracker, TrackerConfig, TrackState
+from services.models import build_fingerprint
+from services.registry import Entry, FingerprintSpec
+
+__all__ = [
+    "FrameResult",
+    "Pipeline",
+    "PipelineConfig",
+    "find_targets",
+    "geometry_key",
+    "make_imager",
+    "truth_error",
+    "truth_positions",
+]
+
+log = logging.getLogger("fp.pipeline")
+
+
+@dataclass
+class PipelineConfig:
+    """Processing settings. Ranges in metres; ``band`` in Hz (default: the frame's truth band, else the
+    probe's −6 dB band); ``n_freq`` frequencies kept in the band (None: every bin of the 2×-padded record:
+    no delay wrap, fpcore Spectrum); ``n_peaks`` detections per fingerprint; ``track_integrate``: the
+    tracker searches the mean of the last K γ-maps (fpcore.tracking)."""
+
+    band: tuple[float, float] | None = None
+    n_freq: int | None = None
+    svd_threshold: float = 0.4
+    grid: Grid | None = None
+    x_range: tuple[float, float] | None = None
+    y_range: tuple[float, float] | None = None
+    z_range: tuple[float, float] | None = None
+    spacing: float | None = None
+    n_out: int | None = None
+    n_peaks: int = 1
+    eps: float = 1e-5
+    publish_image: bool = True
+    track: bool = True
+    track_integrate: int = 1
+
+    def __post_init__(self) -> None:
+        if not 0 < self.svd_threshold <= 1:
+            raise ValueError(f"--svd-threshold: expected 0 < t <= 1, got {self.svd_threshold}")
+        if self.n_peaks < 1:
+            raise ValueError(f"--targets: expected >= 1, got {self.n_peaks}")
+        if self.track_integrate < 1:
+            raise ValueError(f"--track-integrate: expected an integer >= 1, got {self.track_integrate}")
+
+
+@dataclass
+class FrameResult:
+    """What one frame gave: γ-maps (fingerprint name → map on ``grid``), the confocal image (None when
+    not asked for), detections with their distance to the frame's truth, tracks, and the time of the
+    three compute stages (s)."""
+
+    acq: Acquisition
+    pw: PlaneWaveData
+    band: tuple[float, float]
+    grid: Grid
+    fingerprints: dict[str, Fingerprint]
+    gammas: dict[str, np.ndarray]
+    image: np.ndarray | None
+    detections: list[tuple[Detection, float | None]]
+    tracks: list[TrackState]
+    stage_s: dict[str, float] = field(default_factory=dict)
+
+
+def geometry_key(acq: Acquisition) -> tuple:
+    """What a set-up depends on: element positions, transmit sines, sampling, record length, sound speed."""
+    return (acq.probe.positions.tobytes(), acq.sequence.sines.tobytes(), float(acq.fs), acq.n_samples,
+            float(acq.c0))
+
+
+def make_imager(acq: Acquisition, band: tuple[float, float], grid: Grid | None = None, *,
+                ranges: dict[str, Any] | None = None, n_freq: int | None = None, n_out: int | None = None,
+                eps: float | None = None) -> Imager:
+    """An Imager for frames like ``acq``: ``grid``, else ``Grid.for_acquisition`` with ``ranges``
+    (x_range, y_range, z_range, spacing); ``n_out`` output directions per lateral axis (None: the
+    elements); ``eps`` the NUFFT tolerance (None: fpcore's default)."""
+    if grid is None:
+        grid = Grid.for_acquisition(acq, band, **(ranges or {}))
+    out_sines = None
+    if n_out:
+        from fpcore import output_sines
+        out_sines = output_sines(acq.probe, acq.c0, band[1], n=n_out)
+    extra = {} if eps is None else {"eps": eps}
+    return Imager(ImagingConfig(grid, band, n_freq, out_sines, **extra))
+
+
+def truth_positions(truth: dict[str, Any] | None) -> list[tuple[str | None, np.ndarray]]:
+    """(name, position) of the targets of a frame's ground truth (malformed entries skipped)."""
+    out = []
+    for t in (truth or {}).get("targets", []) or []:
+        if isinstance(t, dict) and isinstance(t.get("position_m"), list) and len(t["position_m"]) == 3:
+            out.append((t.get("name"), np.asarray(t["position_m"], float)))
+    return out
+
+
+def truth_error(position: np.ndarray, truths: list[tuple[str | None, np.ndarray]],
+                name: str | None = None) -> float | None:
+    """Distance to the nearest truth target (those named ``name`` if there are any), None without truth."""
+    pos = np.asarray(position, float)
+    named = [t for n, t in truths if name is not None and n == name]
+    cands = named or [t for _, t in truths]
+    return min((float(np.linalg.norm(pos - t)) for t in cands), default=None)
+
+
+def find_targets(gamma: np.ndarray, grid: Grid, acq: Acquisition, band: tuple[float, float], name: str,
+                 n_peaks: int = 1, interior: bool = True) -> list[Detection]:
+    """Detections in one γ-map (``fpcore.detect``: C_γ, C, PFA, Cramér–Rao precision); ``interior`` skips
+    maxima within the diffraction resolution of the grid's border."""
+    lam = acq.c0 / acq.probe.centre_frequency
+    return detect(gamma, grid, lam, acq.probe.aperture[0], band[1] - band[0], acq.c0, name=name,
+                  n_peaks=n_peaks, interior=interior)
+
+
+class Pipeline:
+    """Frames in, :class:`FrameResult` out; holds the fingerprint dictionary (a ``DictionaryHost``)."""
+
+    def __init__(self, config: PipelineConfig,
+                 fingerprints: list[FingerprintSpec] | tuple[FingerprintSpec, ...] = ()) -> None:
+        self.cfg = config
+        self._entries: dict[str, Entry] = {s.name: Entry(s) for s in fingerprints}
+        self.lock = threading.RLock()
+        self._imager: Imager | None = None
+        self._tracker: Tracker | None = None
+        self._geom: tuple | None = None
+        self._band: tuple[float, float] | None = None
+        self._last_acq: Acquisition | None = None
+        self._ref: Acquisition | None = None  # the acquisition of the last set-up (calibration or frame)
+        self.setup_s = 0.0
+
+    # -- set-up --------------------------------------------------------------------------------------
+    def warm_up(self) -> None:
+        """Set up on the first calibration's geometry (NUFFT plan, fingerprints) before frames arrive."""
+        cal = next((e.spec.calibration for e in self._entries.values() if e.spec.calibration is not None), None)
+        if cal is not None:
+            with self.lock:
+                try:
+                    self.setup(cal)
+                except ValueError as exc:
+                    log.error("set-up on the calibration geometry failed: %s", exc)
+
+    def setup(self, acq: Acquisition) -> None:
+        """Imager, tracker and every fingerprint for the geometry of ``acq``."""
+        with self.lock:
+            t0 = time.perf_counter()
+            cfg = self.cfg
+            band = cfg.band or acq.default_band()
+            ranges = {"x_range": cfg.x_range, "y_range": cfg.y_range, "z_range": cfg.z_range, "spacing": cfg.spacing}
+            self._imager = imager = make_imager(acq, band, cfg.grid, ranges=ranges, n_freq=cfg.n_freq,
+                                                n_out=cfg.n_out, eps=cfg.eps)
+            grid = imager.grid
+            self._band = band
+            self._geom = geometry_key(acq)
+            self._ref = acq
+            lam = acq.c0 / acq.probe.centre_frequency
+            # One track per fingerprint and expected target (cfg.n_peaks): a calibration describes one object.
+            self._tracker = (Tracker(grid, lam, acq.probe.aperture[0], band[1] - band[0], acq.c0,
+                                     TrackerConfig(max_tracks_per_map=max(1, cfg.n_peaks),
+                                                   integrate_frames=cfg.track_integrate)) if cfg.track else None)
+            pw = imager.plane_waves(acq)
+            imager.kernel(pw)  # NUFFT plan (FFTW planning: seconds) before the first frame is timed
+            for entry in self._entries.values():
+                self._build(entry, acq, pw)
+                if entry.fp is not None:
+                    try:
+                        imager.template(pw, entry.fp)
+                    except ValueError as exc:
+                        entry.fp, entry.error = None, str(exc)
+            self.setup_s += time.perf_counter() - t0
+            log.info("set up for %s elements × %s waves × %s samples: band %.2f–%.2f MHz, grid %s, dictionary %s",
+                     acq.probe.n_elements, acq.sequence.n_waves, acq.n_samples, band[0] / 1e6, band[1] / 1e6,
+                     grid.shape, list(self._entries))
+
+    def _build(self, entry: Entry, acq: Acquisition, pw: PlaneWaveData) -> None:
+        imager, band = self._imager, self._band
+        assert imager is not None and band is not None
+        entry.fp, entry.error = None, None
+        try:
+            entry.fp = build_fingerprint(entry.spec, acq, pw, imager, band, self.cfg.n_freq, self.cfg.svd_threshold)
+        except ValueError as exc:
+            entry.error = str(exc)
+            log.error("fingerprint %r: %s", entry.spec.name, exc)
+
+    # -- dictionary (services.registry.DictionaryHost) ----------------------------------------------------
+    @property
+    def names(self) -> list[str]:
+        with self.lock:
+            return list(self._entries)
+
+    def entry(self, name: str) -> dict[str, Any] | None:
+        with self.lock:
+            e = self._entries.get(name)
+            return None if e is None else e.describe()
+
+    def add(self, spec: FingerprintSpec) -> dict[str, Any]:
+        """Add or replace a dictionary entry (built now if a frame or the calibration gives the geometry)."""
+        with self.lock:
+            prev = self._entries.get(spec.name)
+            entry = Entry(spec)
+            self._entries[spec.name] = entry
+            ref = next((a for a in (self._last_acq, self._ref, spec.calibration) if a is not None), None)
+            if ref is not None:
+                if self._imager is None:
+                    self.setup(ref)
+                else:
+                    self._build(entry, ref, self._imager.plane_waves(ref))
+            if entry.error is not None:
+                if prev is None:
+                    del self._entries[spec.name]
+                else:
+                    self._entries[spec.name] = prev
+                raise ValueError(entry.error)
+            if prev is not None and prev.fp is not None and self._imager is not None:
+                self._imager.forget(prev.fp)
+            return entry.describe()
+
+    def remove(self, name: str) -> None:
+        with self.lock:
+            entry = self._entries.pop(name, None)
+            if entry is None:
+                raise KeyError(name)
+            if entry.fp is not None and self._imager is not None:
+                self._imager.forget(entry.fp)
+
+    def set_params(self, params: dict[str, Any]) -> None:
+        """Change band, n_freq, svd_threshold or n_peaks; fingerprints are rebuilt."""
+        allowed = {"band_hz", "n_freq", "svd_threshold", "n_peaks"}
+        unknown = set(params) - allowed
+        if unknown:
+            raise ValueError(f"set: unknown parameter(s) {sorted(unknown)}; expected some of {sorted(allowed)}")
+        changes: dict[str, Any] = {}
+        if "band_hz" in params:
+            b = params["band_hz"]
+            if not (isinstance(b, list) and len(b) == 2 and 0 <= float(b[0]) < float(b[1])):
+                raise ValueError(f"set: band_hz must be [f_min, f_max] with 0 <= f_min < f_max, got {b!r}")
+            changes["band"] = (float(b[0]), float(b[1]))
+        if "n_freq" in params:
+            changes["n_freq"] = None if params["n_freq"] is None else int(params["n_freq"])
+        if "svd_threshold" in params:
+            changes["svd_threshold"] = float(params["svd_threshold"])
+        if "n_peaks" in params:
+            changes["n_peaks"] = int(params["n_peaks"])
+        with self.lock:
+            self.cfg = replace(self.cfg, **changes)
+            self._geom = None  # rebuild at the next frame …
+            ref = self._last_acq if self._last_acq is not None else self._ref
+            if ref is not None:  # … or now, to report errors in the reply
+                self.setup(ref)
+
+    def params(self) -> dict[str, Any]:
+        c = self.cfg
+        grid = self._imager.grid if self._imager is not None else c.grid
+        return {"band_hz": list(self._band or c.band or []) or None, "n_freq": c.n_freq,
+                "svd_threshold": c.svd_threshold, "n_peaks": c.n_peaks,
+                "grid_shape": list(grid.shape) if grid is not None else None}
+
+    def describe(self) -> dict[str, Any]:
+        with self.lock:
+            return {"params": self.params(), "entries": [e.describe() for e in self._entries.values()]}
+
+    # -- processing --------------------------------------------------------------------------------------
+    def process(self, acq: Acquisition) -> FrameResult:
+        """γ-maps, image, detections and tracks of one frame (set-up first if its geometry is new); each
+        detection comes with its distance to the nearest truth target of the same name, else of any name."""
+        with self.lock:
+            if self._geom != geometry_key(acq):
+                self.setup(acq)
+            self._last_acq = acq
+            imager, band = self._imager, self._band
+            assert imager is not None and band is not None
+            fps = {n: e.fp for n, e in self._entries.items() if e.fp is not None}
+            cfg = self.cfg
+            t0 = time.perf_counter()
+            pw = imager.plane_waves(acq)
+            t1 = time.perf_counter()
+            gammas = {n: imager.gamma(pw, fp) for n, fp in fps.items()}
+            image = imager.confocal(pw) if cfg.publish_image else None
+            t2 = time.perf_counter()
+            grid = imager.grid
+            truths = truth_positions(acq.truth)
+            dets: list[tuple[Detection, float | None]] = []
+            for name, g in gammas.items():
+                for d in find_targets(g, grid, acq, band, name, cfg.n_peaks, interior=True):  # as fp locate
+                    dets.append((d, truth_error(np.asarray(d.position_m, float), truths, name)))
+            tracks = self._tracker.update(gammas, acq.timestamp) if self._tracker is not None and gammas else []
+            t3 = time.perf_counter()
+        return FrameResult(acq, pw, band, grid, fps, gammas, image, dets, tracks,
+                           {"spectrum_projection": t1 - t0, "gamma_kernel": t2 - t1, "detection": t3 - t2})
