@@ -193,9 +193,13 @@ class Latency(_Model):
 
 
 class RFFrame(Message):
-    """One plane-wave acquisition R(u_out, θ_in, t) (key ``fp/<rig>/rf``); sample n at t0 + n/fs."""
+    """One plane-wave acquisition R(u_out, θ_in, t) (key ``fp/<rig>/rf``); sample n at t0 + n/fs.
+
+    1.1 added ``prf`` (optional): without it (1.0 writers) the transmit times are unknown and the
+    motion-aware fingerprints cannot be used."""
 
     schema_name: Literal["RFFrame"] = "RFFrame"
+    schema_version: str = Field(default="1.1", pattern=VERSION_PATTERN, description="MAJOR.MINOR.")
     frame_index: int = Field(ge=0)
     timestamp: float = Field(description="Acquisition time, s (source clock).")
     fs: float = Field(gt=0, description="Sampling frequency, Hz.")
@@ -209,6 +213,8 @@ class RFFrame(Message):
         description="RF data (N_u, N_θ, N_t), float32 or int16."
     )
     truth: dict[str, JsonValue] | None = Field(default=None, description="Ground truth (free JSON).")
+    prf: float | None = Field(default=None, gt=0, description="Pulse repetition frequency, Hz: the transmits fire in "
+                                                              "order every 1/prf (None: unknown). Since 1.1.")
 
     @model_validator(mode="after")
     def _check(self) -> RFFrame:
@@ -229,7 +235,7 @@ class RFFrame(Message):
             frame_index=acq.frame_index, timestamp=acq.timestamp, fs=acq.fs, t0=acq.t0, c0=acq.c0,
             probe=Probe(positions=p.positions, pitch=p.pitch, centre_frequency=p.centre_frequency,
                         bandwidth=p.bandwidth),
-            sines=acq.sequence.sines, rf=acq.rf, truth=dict(acq.truth) or None,
+            sines=acq.sequence.sines, rf=acq.rf, truth=dict(acq.truth) or None, prf=acq.sequence.prf,
         )
 
     def to_acquisition(self) -> Acquisition:
@@ -241,7 +247,7 @@ class RFFrame(Message):
         return Acquisition(
             rf=self.rf, fs=self.fs, t0=self.t0, c0=self.c0,
             probe=CoreProbe(p.positions, p.pitch, p.centre_frequency, p.bandwidth),
-            sequence=PlaneWaveSequence(self.sines), frame_index=self.frame_index,
+            sequence=PlaneWaveSequence(self.sines, prf=self.prf), frame_index=self.frame_index,
             timestamp=self.timestamp, truth=dict(self.truth or {}),
         )
 
@@ -349,7 +355,7 @@ def examples() -> dict[str, Message]:
     track = Track(id=1, position_m=(0.0, 0.0, 0.01), velocity_m_s=(0.0, 0.0, 1e-3),
                   covariance=((1e-8, 0.0, 0.0), (0.0, 1e-8, 0.0), (0.0, 0.0, 1e-8)), confidence=0.8, age=3)
     msgs: list[Message] = [
-        RFFrame(frame_index=1, timestamp=0.1, fs=20e6, t0=0.0, c0=1500.0, probe=probe, sines=sines, rf=rf,
+        RFFrame(frame_index=1, timestamp=0.1, fs=20e6, t0=0.0, c0=1500.0, probe=probe, sines=sines, rf=rf, prf=5e3,
                 truth={"position_m": [0.0, 0.0, 0.01]}),
         GammaMap(frame_index=1, timestamp=0.1, fingerprint="sphere_10mm", grid=grid, gamma=ramp),
         ConfocalImage(frame_index=1, timestamp=0.1, grid=grid, image=ramp),

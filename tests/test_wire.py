@@ -210,7 +210,7 @@ def test_layout_alignment_and_header(kind: str) -> None:
         end = d["offset"] + d["nbytes"]
     assert len(payload) == start + end
     h = decode_header(hdr)
-    assert h.schema_name == msg.schema_name and h.schema_version == "1.0"
+    assert h.schema_name == msg.schema_name and h.schema_version == ("1.1" if kind.startswith("RFFrame") else "1.0")
     assert [a.name for a in h.arrays] == [d["name"] for d in header["arrays"]]
     assert decode_header(payload) == h
     if "frame_index" in type(msg).model_fields:
@@ -511,6 +511,44 @@ def test_fpcore_conversions() -> None:
     assert back.truth == msg.truth and back.frame_index == msg.frame_index
     g = make_grid(True).to_grid()
     assert isinstance(g, grid_mod.Grid) and Grid.from_grid(g).shape == make_grid(True).shape
+
+
+def test_prf_travels_and_frames_without_it_still_decode() -> None:
+    """RFFrame 1.1 carries the PRF (motion-aware fingerprints need the transmit times); a 1.0 header,
+    written before the field existed, still decodes, with prf None."""
+    import dataclasses
+
+    from fpcore.acquisition import PlaneWaveSequence
+
+    acq = make_rf().to_acquisition()
+    assert acq.sequence.prf is None and RFFrame.from_acquisition(acq).prf is None
+    moving = dataclasses.replace(acq, sequence=PlaneWaveSequence(acq.sequence.sines, prf=4e3))
+    msg = RFFrame.from_acquisition(moving)
+    assert msg.prf == 4e3 and msg.schema_version == "1.1" and RFFrame.version() == (1, 1)
+    back = decode(encode(msg)).to_acquisition()
+    assert back.sequence.prf == 4e3
+    np.testing.assert_allclose(back.sequence.transmit_times(), moving.sequence.transmit_times())
+
+    def as_1_0(h: dict, d: bytes) -> None:
+        h["schema_version"] = "1.0"
+        del h["prf"]
+
+    old = decode(tamper(msg, as_1_0))
+    assert isinstance(old, RFFrame) and old.schema_version == "1.0" and old.prf is None
+    np.testing.assert_array_equal(old.rf, msg.rf)
+    with pytest.raises(ValueError, match="prf"):
+        old.to_acquisition().sequence.transmit_times()
+
+
+@pytest.mark.parametrize("prf", [0.0, -1e3, "fast"])
+def test_bad_prf_refused(prf: object) -> None:
+    def edit(h: dict, d: bytes) -> None:
+        h["prf"] = prf
+
+    assert refused(tamper(make_rf(), edit), "prf").field == "prf"
+    for bad in (prf, float("inf"), float("nan")):
+        with pytest.raises(ValidationError, match="prf"):
+            RFFrame.model_validate({**make_rf().model_dump(), "prf": bad})
 
 
 # ----------------------------------------------------------------------------------- copies / purity
