@@ -40,8 +40,8 @@ def main() -> None:
           f"({(tau[-1] - tau[0]) * 1e3:.0f} ms per sequence); velocity dictionary {vx.size} × {vz.size}")
     for i in range(sc.n_frames):
         acq = sc.frame(i)
-        tg = acq.truth["targets"][0]
-        r, v = np.array(tg["position_m"]), np.array(tg["velocity_m_s"])
+        tg = acq.ground_truth.target("cylinder")
+        r, v = tg.position, tg.velocity
         grid = fpcore.Grid.regular((r[0] - 3e-3, r[0] + 3e-3), (r[2] - 3e-3, r[2] + 3e-3), 0.1e-3)
         imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
         pw = imager.plane_waves(acq)

@@ -136,16 +136,17 @@ def sphere_richness(sc: sim.Scenario, imager: fpcore.Imager, verbose: bool = Tru
     fps = {}
     for name in sc.target_names:
         cal = sc.calibration(name)
-        r0 = np.array(cal.truth["r0_m"])
+        truth = cal.ground_truth
+        r0 = truth.r0
         env = np.sqrt(np.mean(cal.rf.astype(np.float64) ** 2, axis=(0, 1)))
         t = cal.times
         peak = t[np.argmax(env)]
         below = np.nonzero(env > 0.1 * env.max())[0]
         pw = imager.plane_waves(cal)
-        fp = fpcore.from_calibration(cal, r0, pw.out_sines, sc.band, None, diameter=cal.truth["diameter_m"], name=name)
+        fp = fpcore.from_calibration(cal, r0, pw.out_sines, sc.band, None, diameter=truth.diameter, name=name)
         fps[name] = fp
         if verbose:
-                print(f"  {name} (d = {cal.truth['diameter_m'] * 1e3:.0f} mm, r0 = {np.round(r0 * 1e3, 2)} mm): "
+                print(f"  {name} (d = {truth.diameter * 1e3:.0f} mm, r0 = {np.round(r0 * 1e3, 2)} mm): "
                   f"echo above −20 dB for {(t[below[-1]] - peak) * 1e6:.0f} µs after the specular peak; "
                   f"N_T = {fp.n_t:.1f}, N_S = {fp.n_s:.1f} (σ_p ≥ 0.4 σ_1, mean over the band)")
     return fps
@@ -211,9 +212,9 @@ def headline(quick: bool, frames: list[int]) -> None:
         acq = sc.frame(i)
         pw = imager.plane_waves(acq)
         conf = imager_c.confocal(pw)
-        for tg in acq.truth["targets"]:
-            r, a = np.array(tg["position_m"]), 0.5 * tg["diameter_m"]
-            g = imager.gamma(pw, fps[tg["name"]])
+        for tg in acq.ground_truth.targets or []:
+            r, a = tg.position, 0.5 * tg.diameter
+            g = imager.gamma(pw, fps[tg.name])
             idx = np.unravel_index(np.argmax(g), g.shape)
             rp = grid.position(idx)
             cg, cp = contrasts(g, grid, rp, a)
@@ -222,10 +223,10 @@ def headline(quick: bool, frames: list[int]) -> None:
             d2 = sum((m - c) ** 2 for m, c in zip(mesh, r, strict=True))
             slab = (np.abs(mesh[2] - cap[2]) < 1.5e-3) & (d2 > (a + 1e-3) ** 2)
             c_cap = conf[grid_c.nearest_index(cap)] / conf[slab].mean()
-            print(f"  frame {i:2d} {tg['name']}: γ peak {np.linalg.norm(rp - r) * 1e3:4.2f} mm from truth, "
+            print(f"  frame {i:2d} {tg.name}: γ peak {np.linalg.norm(rp - r) * 1e3:4.2f} mm from truth, "
                   f"C_γ = {cg:5.2f}, C = (γ/γ_M)² = {cp:6.1f}, PFA(L ≈ {n_grains:.0f}) = {pfa(cp, n_grains):.1e} | "
                   f"confocal: centre {c_centre:4.2f}, cap {c_cap:4.2f} (vs same-depth fog)")
-            fp = fps[tg["name"]]
+            fp = fps[tg.name]
             print(f"           gain: G ≈ N_S·N_T = {fp.n_s * fp.n_t:5.0f} (paper eq. G) vs measured C_γ/C_I = "
                   f"{cg / c_centre:5.1f} (C_I at the centre), {cg / c_cap:4.1f} (C_I at the cap)")
 
@@ -236,12 +237,12 @@ def lesion() -> None:
     grid = fpcore.Grid.regular((0.5e-3, 6.5e-3), (28e-3, 36e-3), 0.15e-3, y_range=(1.5e-3, 7.5e-3))
     im = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
     cal = sc.calibration("marker")
-    fp = fpcore.from_calibration(cal, np.array(cal.truth["r0_m"]), im.plane_waves(cal).out_sines, sc.band,
-                                 None, diameter=cal.truth["diameter_m"])
+    fp = fpcore.from_calibration(cal, cal.ground_truth.r0, im.plane_waves(cal).out_sines, sc.band,
+                                 None, diameter=cal.ground_truth.diameter)
     acq = sc.frame(0)
     pw = im.plane_waves(acq)
     g, conf = im.gamma(pw, fp), im.confocal(pw)
-    r = np.array(acq.truth["targets"][0]["position_m"])
+    r = acq.ground_truth.target("marker").position
     rp = grid.position(np.unravel_index(np.argmax(g), g.shape))
     rc = grid.position(np.unravel_index(np.argmax(conf), conf.shape))
     print(f"  N_S = {fp.n_s:.1f}, N_T = {fp.n_t:.1f}; γ peak {np.linalg.norm(rp - r) * 1e3:.2f} mm from truth, "

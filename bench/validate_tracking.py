@@ -66,8 +66,8 @@ def run(name: str, quick: bool, n_frames: int | None, z_range: tuple[float, floa
         conf_sum += imager.confocal(pw)
         maps = {t: imager.gamma(pw, fp) for t, fp in fps.items()}
         states = {s.fingerprint: s for s in tracker.update(maps, acq.timestamp)}
-        for tg in acq.truth["targets"]:
-            t, r = tg["name"], np.array(tg["position_m"])
+        for tg in acq.ground_truth.targets or []:
+            t, r = tg.name, tg.position
             det = fpcore.detect(maps[t], grid, lam, aperture, bw, sc.c0, name=t)[0]
             st = states.get(t)
             row: dict[str, Any] = {"frame": i, "truth_m": r.tolist(), "argmax_m": det.position_m,

@@ -33,6 +33,7 @@ from .grid import Grid
 from .kernel import GridTransform, direct_sum, wavevectors
 from .likelihood import Imager, ImagingConfig
 from .metrics import Detection, contrasts, cramer_rao_precision, detect, pfa
+from .truth import TargetTruth, Truth
 
 __version__ = "0.1.0"
 
@@ -48,6 +49,8 @@ __all__ = [
     "PlaneWaveSequence",
     "Probe",
     "Spectrum",
+    "TargetTruth",
+    "Truth",
     "angular_mask",
     "contrasts",
     "cramer_rao_precision",

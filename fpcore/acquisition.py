@@ -13,11 +13,14 @@ Conventions (docs/design.md §3, §4.1–4.2):
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import scipy.fft as sfft
+
+from .truth import Truth
 
 __all__ = [
     "Probe",
@@ -157,7 +160,11 @@ class PlaneWaveSequence:
 
 @dataclass
 class Acquisition:
-    """One RF frame R(u_out, θ_in, t): real array (N_u, N_θ, N_t), sample n at t0 + n/fs."""
+    """One RF frame R(u_out, θ_in, t): real array (N_u, N_θ, N_t), sample n at t0 + n/fs.
+
+    truth: the frame's ground truth as the JSON object it travels as (wire, UFF, JSON; empty if none);
+    `ground_truth` is its typed view (`fpcore.truth.Truth`).
+    """
 
     rf: np.ndarray
     fs: float
@@ -194,11 +201,16 @@ class Acquisition:
     def times(self) -> np.ndarray:
         return self.t0 + np.arange(self.n_samples) / self.fs
 
+    @property
+    def ground_truth(self) -> Truth:
+        """The typed view of `truth` (an empty Truth when the frame carries none)."""
+        return Truth.from_dict(self.truth) if isinstance(self.truth, Mapping) else Truth()
+
     def default_band(self) -> tuple[float, float]:
         """The band to image: the truth's ``band_hz`` if the frame carries one (simulated frames), else
         the probe's −6 dB band [f_c − B/2, f_c + B/2] clipped to [0, fs/2]."""
-        band = self.truth.get("band_hz") if isinstance(self.truth, dict) else None
-        if isinstance(band, (list, tuple)) and len(band) == 2:
+        band = self.ground_truth.band_hz
+        if band is not None:
             return float(band[0]), float(band[1])
         fc, bw = self.probe.centre_frequency, self.probe.bandwidth
         return max(fc - bw / 2, 0.0), min(fc + bw / 2, self.fs / 2)

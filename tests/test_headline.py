@@ -30,11 +30,11 @@ def test_spheres_hidden_on_confocal_found_by_gamma(setup, frame: int) -> None:
     pw = imager.plane_waves(acq)
     conf = imager.confocal(pw)
     lam = sc.c0 / sc.probe.centre_frequency
-    for tg in acq.truth["targets"]:
-        r, radius = np.array(tg["position_m"]), 0.5 * tg["diameter_m"]
-        gamma = imager.gamma(pw, fps[tg["name"]])
+    for tg in acq.ground_truth.targets or []:
+        r, radius = tg.position, 0.5 * tg.diameter
+        gamma = imager.gamma(pw, fps[tg.name])
         det = fpcore.detect(gamma, grid, lam, sc.probe.aperture[0], sc.band[1] - sc.band[0], sc.c0,
-                            name=tg["name"], exclusion_radius=radius)[0]
+                            name=tg.name, exclusion_radius=radius)[0]
         assert np.linalg.norm(np.array(det.position_m) - r) < 1e-3
         assert det.c_gamma >= 5.0
         assert det.pfa < 1e-6

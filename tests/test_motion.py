@@ -46,8 +46,8 @@ def test_motion_aware_fingerprint_undoes_the_smear_of_a_fast_target() -> None:
     per-pixel argmax at the peak recovers v (on its grid)."""
     sc = scenario("fast-cylinder", quick=True, n_frames=1)
     acq = sc.frame(0)
-    tg = acq.truth["targets"][0]
-    r, v = np.array(tg["position_m"]), np.array(tg["velocity_m_s"])
+    tg = acq.ground_truth.target("cylinder")
+    r, v = tg.position, tg.velocity
     grid = fpcore.Grid.regular((r[0] - 3e-3, r[0] + 3e-3), (r[2] - 3e-3, r[2] + 3e-3), 0.1e-3)
     imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
     pw = imager.plane_waves(acq)

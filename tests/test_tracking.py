@@ -164,12 +164,12 @@ def test_tracks_the_simulated_sinking_cylinder() -> None:
         pw = imager.plane_waves(acq)
         states = {s.fingerprint: s for s in tracker.update({n: imager.gamma(pw, f) for n, f in fps.items()},
                                                            acq.timestamp)}
-        for tg in acq.truth["targets"]:
-            s = states[tg["name"]]
-            errs[tg["name"]].append(float(np.linalg.norm(np.array(s.position_m) - np.array(tg["position_m"]))))
+        for tg in acq.ground_truth.targets or []:
+            s = states[tg.name]
+            errs[tg.name].append(float(np.linalg.norm(np.array(s.position_m) - tg.position)))
             d_lat, d_ax = cramer_rao_precision(lam, diffraction_resolution(lam, ap, s.position_m[2]), s.c_gamma)
-            crs[tg["name"]].append(float(np.hypot(d_lat, d_ax)))
-            ids[tg["name"]].add(s.track_id)
+            crs[tg.name].append(float(np.hypot(d_lat, d_ax)))
+            ids[tg.name].add(s.track_id)
     for name in fps:
         e = np.array(errs[name])
         assert e.max() < 1e-3, f"{name}: {e.max() * 1e3:.2f} mm"

@@ -71,6 +71,7 @@ import scipy.fft as sfft
 
 from fpcore.acquisition import Acquisition, PlaneWaveSequence, Probe
 from fpcore.geometry import cosines
+from fpcore.truth import Truth
 
 __all__ = [
     "UFFError",
@@ -277,14 +278,14 @@ def write_uff(
     path: PathLike,
     frames: Sequence[Acquisition] | Acquisition,
     name: str = "channel_data",
-    truth: Sequence[Mapping[str, Any]] | Mapping[str, Any] | None = None,
+    truth: Sequence[Mapping[str, Any] | Truth] | Mapping[str, Any] | Truth | None = None,
     *,
     mode: Literal["w", "a"] = "w",
     compression: Literal["gzip"] | None = None,
 ) -> None:
     """Write frames sharing one set-up as a UFF ``uff.channel_data`` dataset ``name``.
 
-    truth: one JSON-able dict per frame (or one dict for all frames); default: each frame's truth.
+    truth: one JSON-able dict or `Truth` per frame (or one for all frames); default: each frame's truth.
     mode "w" creates the file, "a" adds a dataset to an existing UFF file (or creates it).
     """
     seq = [frames] if isinstance(frames, Acquisition) else list(frames)
@@ -297,10 +298,12 @@ def write_uff(
     _check_frames(seq)
     if truth is None:
         truths: list[Any] = [dict(fr.truth) for fr in seq]
+    elif isinstance(truth, Truth):
+        truths = [truth.to_dict()] * len(seq)
     elif isinstance(truth, Mapping):
         truths = [dict(truth)] * len(seq)
     else:
-        truths = list(truth)
+        truths = [t.to_dict() if isinstance(t, Truth) else t for t in truth]
         if len(truths) != len(seq):
             raise UFFError(f"truth: expected {len(seq)} dicts (one per frame), got {len(truths)}")
     ref = seq[0]

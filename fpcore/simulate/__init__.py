@@ -7,7 +7,7 @@ e^{-i2πft} spectra, outgoing e^{-ikr}, plane-wave delays τ = (u_x s_x + u_y s_
 
     >>> import fpcore.simulate as sim
     >>> sc = sim.scenario("sinking-sphere", quick=True, seed=0)
-    >>> acq = next(sc.frames()); acq.truth["targets"][0]["position_m"]
+    >>> acq = next(sc.frames()); acq.ground_truth.targets[0].position   # acq.truth: the JSON object
     >>> cal = sc.calibration("sphere1")
 """
 

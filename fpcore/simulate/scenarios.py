@@ -2,9 +2,9 @@
 
     >>> import fpcore.simulate as sim
     >>> sc = sim.scenario("sinking-sphere", quick=True, seed=0)
-    >>> for acq in sc.frames():          # Acquisition (N_u, N_θ, N_t) float32, truth in acq.truth
+    >>> for acq in sc.frames():          # Acquisition (N_u, N_θ, N_t) float32, truth in acq.ground_truth
     ...     ...
-    >>> cal = sc.calibration("sphere1")  # the target alone in water at r0 = cal.truth["r0_m"]
+    >>> cal = sc.calibration("sphere1")  # the target alone in water at r0 = cal.ground_truth.r0
 
 A frame is X(f) = S(f) [H_static + Σ_moving H_target(r_n) + V_n(f)] → RF + electronic noise, with
 H_static the interface echo, the medium's single-scattering speckle and the targets that do not move
@@ -49,6 +49,7 @@ import numpy as np
 
 from ..acquisition import Acquisition, PlaneWaveSequence, Probe
 from ..fingerprint import Fingerprint, from_calibration
+from ..truth import MediumTruth, TargetTruth, Truth
 from .medium import DiffuseBackground, ScatteringLayer
 from .targets import ElasticCylinder, ElasticSphere, MirrorSegment, PointCluster, Target
 from .waves import Band, TimeWindow, radiate_points
@@ -201,36 +202,37 @@ class Scenario:
             rf += rng.standard_normal(rf.shape, dtype=np.float32) * np.float32(rms)
 
     # -- truth ---------------------------------------------------------------------------------------
-    def truth(self, i: int) -> dict[str, Any]:
-        """Ground truth of frame i (JSON-serialisable)."""
+    def ground_truth(self, i: int) -> Truth:
+        """Ground truth of frame i: the targets in the scene (position, velocity, depth below the layer's
+        surface), the medium and `extra_truth`."""
         targets = []
         for name, pl in self.placements.items():
             if not pl.in_scene:
                 continue
             r = pl.position(i)
-            entry: dict[str, Any] = {"name": name, "kind": pl.kind, "position_m": [float(v) for v in r],
-                                     "diameter_m": float(pl.target.diameter), "moving": pl.moving}
-            if pl.moving:
-                entry["velocity_m_s"] = [float(v) for v in pl.velocity(i, self.frame_rate)]
-            if self.layer is not None and pl.in_medium:
-                entry["depth_below_surface_m"] = float(r[2] - self.layer.z_surface)
-            targets.append(entry)
-        out: dict[str, Any] = {"scenario": self.name, "quick": self.quick, "seed": self.seed,
-                               "frame_index": i, "time_s": i / self.frame_rate, "dim": self.dim,
-                               "band_hz": [self.pulse.f_min, self.pulse.f_max], "targets": targets}
+            v = pl.velocity(i, self.frame_rate) if pl.moving else None
+            depth = float(r[2] - self.layer.z_surface) if self.layer is not None and pl.in_medium else None
+            targets.append(TargetTruth(name=name, kind=pl.kind, position_m=_vec3(r),
+                                       diameter_m=float(pl.target.diameter), moving=pl.moving,
+                                       velocity_m_s=None if v is None else _vec3(v), depth_below_surface_m=depth))
+        medium = None
         if self.layer is not None:
             lay = self.layer
-            out["medium"] = {"z_surface_m": lay.z_surface, "ls_m": lay.ls, "la_m": float(lay.la),
-                             "l_ext_m": lay.l_ext, "envelope": lay.envelope,
-                             "frame_displacement_m": lay.frame_displacement,
-                             "interface_reflection": lay.reflection(self.rho0, self.c0)}
-        out.update(self.extra_truth)
-        return out
+            medium = MediumTruth(z_surface_m=lay.z_surface, ls_m=lay.ls, la_m=float(lay.la), l_ext_m=lay.l_ext,
+                                 envelope=lay.envelope, frame_displacement_m=lay.frame_displacement,
+                                 interface_reflection=lay.reflection(self.rho0, self.c0))
+        out = Truth(scenario=self.name, quick=self.quick, seed=self.seed, frame_index=i, time_s=i / self.frame_rate,
+                    dim=self.dim, band_hz=(self.pulse.f_min, self.pulse.f_max), targets=targets, medium=medium)
+        return out.merged(self.extra_truth) if self.extra_truth else out
+
+    def truth(self, i: int) -> dict[str, Any]:
+        """Ground truth of frame i as the JSON object frames carry (``ground_truth(i).to_dict()``)."""
+        return self.ground_truth(i).to_dict()
 
     # -- frames ---------------------------------------------------------------------------------------
-    def _acquisition(self, rf: np.ndarray, i: int, truth: dict[str, Any]) -> Acquisition:
+    def _acquisition(self, rf: np.ndarray, i: int, truth: Truth) -> Acquisition:
         return Acquisition(rf, self.fs, self.t0, self.c0, self.probe, self.sequence, frame_index=i,
-                           timestamp=i / self.frame_rate, truth=truth)
+                           timestamp=i / self.frame_rate, truth=truth.to_dict())
 
     def _reset(self) -> None:
         self._diffuse = None
@@ -257,7 +259,7 @@ class Scenario:
         x = h * self.pulse.spectrum(self.freqs).astype(np.float32)[:, None, None]
         rf = self.window.synthesize(x, self.bins)
         self._electronic_noise(rf, self.noise_rms, (2, i))
-        return self._acquisition(rf, i, self.truth(i))
+        return self._acquisition(rf, i, self.ground_truth(i))
 
     def _moving_target_h(self, pl: Placement, i: int) -> np.ndarray:
         """H of a moving target in frame i. With the sequence's prf set, transmit j sees the target where
@@ -283,27 +285,37 @@ class Scenario:
         gated at its front face (r0 and diameter from the calibration's truth)."""
         out = {}
         for name in self.target_names:
-            cal = self.calibration(name)
-            out[name] = from_calibration(cal, np.array(cal.truth["r0_m"]), out_sines, self.band, n_freq,
-                                         diameter=cal.truth["diameter_m"], svd_threshold=svd_threshold, name=name)
+            truth = self.calibration_truth(name)
+            out[name] = from_calibration(self.calibration(name), truth.r0, out_sines, self.band, n_freq,
+                                         diameter=truth.diameter, svd_threshold=svd_threshold, name=name)
         return out
 
-    def calibration(self, target_name: str) -> Acquisition:
-        """The target alone in water at its calibration position r0 (truth: r0_m, diameter_m)."""
+    def calibration_truth(self, target_name: str) -> Truth:
+        """Truth of the calibration acquisition of one target: r0_m, diameter_m, the target at r0."""
         if target_name not in self.placements:
             raise KeyError(f"target {target_name!r}: expected one of {self.target_names}")
+        pl = self.placements[target_name]
+        r0, d = _vec3(pl.calibration_position), float(pl.target.diameter)
+        return Truth(scenario=self.name, calibration=True, quick=self.quick, seed=self.seed, r0_m=r0, diameter_m=d,
+                     band_hz=(self.pulse.f_min, self.pulse.f_max),
+                     targets=[TargetTruth(name=target_name, kind=pl.kind, position_m=r0, diameter_m=d, moving=False)])
+
+    def calibration(self, target_name: str) -> Acquisition:
+        """The target alone in water at its calibration position r0 (truth: `calibration_truth`)."""
+        truth = self.calibration_truth(target_name)
         pl = self.placements[target_name]
         r0 = pl.calibration_position
         h = self._target_h(pl, r0, in_medium=False)
         x = h * self.pulse.spectrum(self.freqs).astype(np.float32)[:, None, None]
         rf = self.window.synthesize(x, self.bins)
         self._electronic_noise(rf, self.calibration_noise_rms, (3, self.target_names.index(target_name)))
-        truth = {"scenario": self.name, "calibration": True, "quick": self.quick, "seed": self.seed,
-                 "r0_m": [float(v) for v in r0], "diameter_m": float(pl.target.diameter),
-                 "band_hz": [self.pulse.f_min, self.pulse.f_max],
-                 "targets": [{"name": target_name, "kind": pl.kind, "position_m": [float(v) for v in r0],
-                              "diameter_m": float(pl.target.diameter), "moving": False}]}
         return self._acquisition(rf, 0, truth)
+
+
+def _vec3(r: np.ndarray) -> tuple[float, float, float]:
+    """A position or velocity as the three plain floats a truth record holds."""
+    x, y, z = (float(v) for v in r)
+    return x, y, z
 
 
 # ------------------------------------------------------------------------------------------------------
