@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -198,8 +199,8 @@ def timings() -> None:
 
 def headline(quick: bool, frames: list[int]) -> None:
     sc = sim.scenario("sinking-sphere", quick=quick, seed=0)
-    grid = fpcore.Grid.regular((-11e-3, 11e-3), (20e-3, 31e-3), 0.25e-3, y_range=(-5e-3, 5e-3))
-    grid_c = fpcore.Grid.regular((-11e-3, 11e-3), (17e-3, 31e-3), 0.25e-3, y_range=(-5e-3, 5e-3))
+    grid = sc.roi.grid()
+    grid_c = replace(sc.roi, z_range=(17e-3, sc.roi.z_range[1])).grid()  # the confocal image from 1 mm under z_s
     imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
     imager_c = fpcore.Imager(fpcore.ImagingConfig(grid_c, band=sc.band))
     fps = sphere_richness(sc, imager, verbose=quick)
@@ -234,7 +235,7 @@ def headline(quick: bool, frames: list[int]) -> None:
 def lesion() -> None:
     section("8. Lesion marker (quick): γ vs confocal in speckle at z − z_s ≈ ℓ_s")
     sc = sim.scenario("lesion-marker", quick=True)
-    grid = fpcore.Grid.regular((0.5e-3, 6.5e-3), (28e-3, 36e-3), 0.15e-3, y_range=(1.5e-3, 7.5e-3))
+    grid = sc.roi.grid()
     im = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
     cal = sc.calibration("marker")
     fp = fpcore.from_calibration(cal, cal.ground_truth.r0, im.plane_waves(cal).out_sines, sc.band,

@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -32,19 +33,16 @@ from fpcore.simulate import scenario
 from fpcore.tracking import Tracker, TrackerConfig
 from services.units import parse_length, parse_range
 
-DEFAULT_X = (-11e-3, 11e-3)
-DEFAULT_Z = (20e-3, 31e-3)
 
-
-def run(name: str, quick: bool, n_frames: int | None, z_range: tuple[float, float], spacing: float | None,
+def run(name: str, quick: bool, n_frames: int | None, z_range: tuple[float, float] | None, spacing: float | None,
         overrides: dict[str, Any], integrate: int = 1) -> dict[str, Any]:
-    """Simulate, image, track; returns per-target rows and the mean confocal image."""
+    """Simulate, image, track over the scenario's region of interest (depths `z_range` if given);
+    returns per-target rows and the mean confocal image."""
     sc = scenario(name, quick=quick, seed=0, **overrides)
     n = sc.n_frames if n_frames is None else min(n_frames, sc.n_frames)
-    if sc.dim == 3:
-        grid = fpcore.Grid.regular(DEFAULT_X, z_range, spacing or 0.25e-3, y_range=(-5e-3, 5e-3))
-    else:
-        grid = fpcore.Grid.regular(DEFAULT_X, z_range, spacing or 0.1e-3)
+    roi = sc.roi if z_range is None else replace(sc.roi, z_range=z_range)
+    z_range = roi.z_range
+    grid = roi.grid(spacing)
     imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
     fps = sc.fingerprints(fpcore.output_sines(sc.probe, sc.c0, sc.band[1]))
     lam = sc.c0 / sc.probe.centre_frequency
@@ -88,7 +86,8 @@ def run(name: str, quick: bool, n_frames: int | None, z_range: tuple[float, floa
                   f"{row['c_gamma'] or float('nan'):6.1f} {row['track_id'] or '-':>3}")
     wall = time.perf_counter() - t_start
     return {"scenario": name, "quick": quick, "dim": sc.dim, "frames": n, "wall_s": wall, "grid": grid,
-            "confocal": conf_sum / n, "rows": rows, "z_surface_m": sc.layer.z_surface if sc.layer else None,
+            "z_range": z_range, "confocal": conf_sum / n, "rows": rows,
+            "z_surface_m": sc.layer.z_surface if sc.layer else None,
             "diameters_m": {p: pl.target.diameter for p, pl in sc.placements.items()}, "overrides": overrides}
 
 
@@ -148,8 +147,8 @@ def main() -> None:
     ap.add_argument("--scenario", default="sinking-sphere", choices=("sinking-sphere", "sinking-cylinder"))
     ap.add_argument("--full", action="store_true", help="full-size scenario (slow in 3D)")
     ap.add_argument("--frames", type=int, default=None, help="number of frames (default: all)")
-    ap.add_argument("--z", type=lambda t: parse_range(t, "--z"), default=DEFAULT_Z,
-                    help="ROI depth range A:B with units (default 20mm:31mm)")
+    ap.add_argument("--z", type=lambda t: parse_range(t, "--z"), default=None,
+                    help="ROI depth range A:B with units (default: the scenario's, 20mm:31mm)")
     ap.add_argument("--spacing", type=lambda t: parse_length(t, "--spacing"), default=None,
                     help="grid spacing with units (default 0.25mm in 3D, 0.1mm in 2D)")
     ap.add_argument("--sink", type=lambda t: parse_range(t, "--sink"), default=None,
@@ -173,7 +172,8 @@ def main() -> None:
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps({"summary": summary, "rows": res["rows"], "frames": res["frames"],
-                                               "scenario": res["scenario"], "z_range_m": list(args.z)}, indent=1))
+                                               "scenario": res["scenario"], "z_range_m": list(res["z_range"])},
+                                              indent=1))
         print(f"wrote {args.json}")
 
 

@@ -29,7 +29,7 @@ from .fingerprint import (
     time_gate,
     whiten,
 )
-from .grid import Grid
+from .grid import Grid, Roi
 from .kernel import GridTransform, direct_sum, wavevectors
 from .likelihood import Imager, ImagingConfig
 from .metrics import Detection, contrasts, cramer_rao_precision, detect, pfa
@@ -48,6 +48,7 @@ __all__ = [
     "PlaneWaveData",
     "PlaneWaveSequence",
     "Probe",
+    "Roi",
     "Spectrum",
     "TargetTruth",
     "Truth",

@@ -14,7 +14,7 @@ from .geometry import from_xyz, to_xyz
 if TYPE_CHECKING:
     from .acquisition import Acquisition
 
-__all__ = ["Grid"]
+__all__ = ["Grid", "Roi"]
 
 
 def _axis(start: float, step: float, n: int) -> np.ndarray:
@@ -139,3 +139,31 @@ class Grid:
         coords = self.from_xyz(r)
         return tuple(int(np.clip(np.rint((c - a[0]) / (a[1] - a[0] if a.size > 1 else 1.0)), 0, a.size - 1))
                      for c, a in zip(coords, self.axes, strict=True))
+
+
+@dataclass(frozen=True)
+class Roi:
+    """A region of interest (docs/design.md §3): the box x_range × (y_range) × z_range (m) and the grid
+    step it is imaged at; y_range None: a 2D (x–z) region. `grid` makes the regular grid over it."""
+
+    x_range: tuple[float, float]
+    z_range: tuple[float, float]
+    spacing: float
+    y_range: tuple[float, float] | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("x_range", "y_range", "z_range"):
+            r = getattr(self, name)
+            if r is not None and not r[0] <= r[1]:
+                raise ValueError(f"roi.{name}: expected (min, max) in metres, got {r}")
+        if not self.spacing > 0:
+            raise ValueError(f"roi.spacing: expected > 0 m, got {self.spacing}")
+
+    @property
+    def ndim(self) -> int:
+        return 2 if self.y_range is None else 3
+
+    def grid(self, spacing: float | None = None) -> Grid:
+        """The regular grid covering the region, at `spacing` (m; default: the region's own step)."""
+        return Grid.regular(self.x_range, self.z_range, self.spacing if spacing is None else spacing,
+                            y_range=self.y_range)

@@ -36,3 +36,26 @@ def test_default_band_is_the_probe_band_without_truth() -> None:
     acq.truth = {}
     assert acq.default_band() == (1.8e6, 2.6e6)
     assert Grid.for_acquisition(acq, acq.default_band()).ndim == 3
+
+
+def test_scenario_regions_of_interest() -> None:
+    import pytest
+
+    from fpcore import Roi
+    from fpcore.simulate import scenario
+
+    sphere = scenario("sinking-sphere", quick=True).roi
+    assert sphere is not None
+    g = sphere.grid()
+    ref = Grid.regular((-11e-3, 11e-3), (20e-3, 31e-3), 0.25e-3, y_range=(-5e-3, 5e-3))
+    assert g.shape == ref.shape == (89, 41, 45)
+    assert all(np.array_equal(a, b) for a, b in zip(g.axes, ref.axes, strict=True))
+    assert np.allclose(sphere.grid(0.5e-3).spacing, 0.5e-3, rtol=1e-9, atol=0)
+    cyl = scenario("sinking-cylinder", quick=True).roi
+    assert cyl is not None and cyl.ndim == 2 and cyl.grid().shape == (221, 111)
+    assert scenario("lesion-marker", quick=True).roi is not None
+    assert scenario("fast-cylinder", quick=True).roi is None
+    with pytest.raises(ValueError, match="z_range"):
+        Roi((0.0, 1e-3), (2e-3, 1e-3), 1e-4)
+    with pytest.raises(ValueError, match="spacing"):
+        Roi((0.0, 1e-3), (1e-3, 2e-3), 0.0)

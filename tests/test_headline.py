@@ -17,7 +17,7 @@ from fpcore.simulate import scenario
 @pytest.fixture(scope="module")
 def setup():
     sc = scenario("sinking-sphere", quick=True, seed=0)
-    grid = fpcore.Grid.regular((-11e-3, 11e-3), (20e-3, 31e-3), 0.25e-3, y_range=(-5e-3, 5e-3))
+    grid = sc.roi.grid()  # x ±11 mm, y ±5 mm, z 20–31 mm, 0.25 mm
     imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
     fps = sc.fingerprints(fpcore.output_sines(sc.probe, sc.c0, sc.band[1]))
     return sc, grid, imager, fps

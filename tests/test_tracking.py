@@ -151,7 +151,7 @@ def test_tracks_the_simulated_sinking_cylinder() -> None:
     from fpcore.simulate import scenario
 
     sc = scenario("sinking-cylinder", quick=True, seed=0, n_frames=10)
-    grid = fpcore.Grid.regular((-11e-3, 11e-3), (20e-3, 31e-3), 0.1e-3)
+    grid = sc.roi.grid()  # x ±11 mm, z 20–31 mm, 0.1 mm
     imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
     fps = sc.fingerprints(fpcore.output_sines(sc.probe, sc.c0, sc.band[1]))
     lam = sc.c0 / sc.probe.centre_frequency

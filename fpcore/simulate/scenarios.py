@@ -49,6 +49,7 @@ import numpy as np
 
 from ..acquisition import Acquisition, PlaneWaveSequence, Probe
 from ..fingerprint import Fingerprint, from_calibration
+from ..grid import Roi
 from ..truth import MediumTruth, TargetTruth, Truth
 from .medium import DiffuseBackground, ScatteringLayer
 from .targets import ElasticCylinder, ElasticSphere, MirrorSegment, PointCluster, Target
@@ -92,7 +93,10 @@ class Placement:
 
 @dataclass
 class Scenario:
-    """A simulated rig: probe, sequence, window, targets, medium; frames on demand with ground truth."""
+    """A simulated rig: probe, sequence, window, targets, medium; frames on demand with ground truth.
+
+    roi: the region the scenario is meant to be imaged over (`Roi.grid()` gives the grid), where one is
+    defined (sinking-sphere, sinking-cylinder, lesion-marker)."""
 
     name: str
     probe: Probe
@@ -114,6 +118,7 @@ class Scenario:
     calibration_noise_rms: float = 0.0
     description: str = ""
     extra_truth: dict[str, Any] = field(default_factory=dict)
+    roi: Roi | None = None  # the region to image (`roi.grid()`); None: none defined, image the record's window
     _static: np.ndarray | None = field(default=None, init=False, repr=False)
     _diffuse: DiffuseBackground | None = field(default=None, init=False, repr=False)
     _next: int = field(default=0, init=False, repr=False)
@@ -327,6 +332,12 @@ def _sinking(a: np.ndarray, b: np.ndarray, n: int, rate: float = 2.0) -> np.ndar
     return (1 - w) * np.asarray(a, float)[None, :] + w * np.asarray(b, float)[None, :]
 
 
+#: Depths imaged under the granular suspension (surface at 16 mm): from 4 mm below the surface, where the
+#: interface echo and the fog just under it no longer dominate γ's global normalisation (docs/design.md
+#: §4.9 caveat, paper S2), to past the deepest target; both sinking scenarios use it.
+_SUSPENSION_ROI_Z = (20e-3, 31e-3)
+
+
 def _granular_suspension(**overrides: Any) -> ScatteringLayer:
     """The vibrated granular suspension of the paper's first experiment (Supplementary S1): surface 16 mm
     below the array, ℓ_s = 1.8 mm, ℓ_a = 8 mm, 50 µm scatterer motion between frames; `overrides` win."""
@@ -379,7 +390,8 @@ def sinking_sphere(quick: bool = False, seed: int = 0, n_frames: int = 32, noise
                    kind="sphere")
     return Scenario("sinking-sphere", probe, seq, c0, window, band, n_frames, {"sphere1": s1, "sphere2": s2},
                     dim=3, seed=seed, quick=quick, layer=layer, noise_rms=noise_rms,
-                    calibration_noise_rms=0.1 * noise_rms, description=sinking_sphere.__doc__ or "")
+                    calibration_noise_rms=0.1 * noise_rms, description=sinking_sphere.__doc__ or "",
+                    roi=Roi((-11e-3, 11e-3), _SUSPENSION_ROI_Z, 0.25e-3, y_range=(-5e-3, 5e-3)))
 
 
 def sinking_cylinder(quick: bool = False, seed: int = 0, n_frames: int = 32, noise_rms: float = 2e-4,
@@ -411,7 +423,7 @@ def sinking_cylinder(quick: bool = False, seed: int = 0, n_frames: int = 32, noi
     return Scenario("sinking-cylinder", probe, seq, c0, window, band, n_frames,
                     {"cylinder1": c1, "cylinder2": c2}, dim=2, seed=seed, quick=quick, layer=layer,
                     noise_rms=noise_rms, calibration_noise_rms=0.1 * noise_rms,
-                    description=sinking_cylinder.__doc__ or "")
+                    description=sinking_cylinder.__doc__ or "", roi=Roi((-11e-3, 11e-3), _SUSPENSION_ROI_Z, 0.1e-3))
 
 
 def fast_cylinder(quick: bool = False, seed: int = 0, n_frames: int = 4,
@@ -500,9 +512,10 @@ def lesion_marker(quick: bool = False, seed: int = 0, n_frames: int | None = Non
     r_m = np.array([3.5e-3, 4.5e-3, 32e-3])
     r0 = r_m - np.array([0.0, 0.0, 2e-3]) if calibration == "nominal" else np.array([0.0, 0.0, 30e-3])
     pl = Placement(marker, r_m[None, :], r0, kind="marker")
+    roi = Roi((0.5e-3, 6.5e-3), (28e-3, 36e-3), 0.15e-3, y_range=(1.5e-3, 7.5e-3))  # marker ± 3 mm (z: ± 4 mm)
     return Scenario("lesion-marker", probe, seq, c0, window, band, n_frames, {"marker": pl}, dim=3, seed=seed,
                     quick=quick, layer=layer, speckle=(pts, t), noise_rms=2e-4, calibration_noise_rms=2e-5,
-                    description=lesion_marker.__doc__ or "")
+                    description=lesion_marker.__doc__ or "", roi=roi)
 
 
 def bipennate_orientation(x: np.ndarray, z: np.ndarray, alpha_top: float = np.deg2rad(-20.0),
