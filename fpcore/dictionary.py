@@ -145,7 +145,7 @@ class Dictionary:
         use_fft = self.family is not None and method in ("auto", "fft")
         maps: Iterator[tuple[int, np.ndarray]]
         if use_fft:
-            key = (id(imager), Imager._key(pw))
+            key = imager.cache_key(pw)  # content, not id(imager): an id can be reused by a new imager
             if key not in self._correlators:
                 self._correlators = {key: _FFTCorrelator.build(pw, grid, imager.config.eps, self.family)}
             corr = self._correlators[key]

@@ -34,6 +34,7 @@ argmax estimates v (see bench/validate_motion.py).
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -55,6 +56,8 @@ __all__ = [
     "moving_fingerprint",
 ]
 
+_TOKENS = itertools.count(1)  # Fingerprint.token
+
 
 @dataclass
 class Fingerprint:
@@ -62,7 +65,9 @@ class Fingerprint:
 
     provenance: "calibration" or "model:<kind>"; state: the parameters q (size, orientation, …);
     n_s: effective rank N_S (mean over frequency of the kept singular values); singular_values:
-    normalised σ_p/σ_1 per frequency for calibration fingerprints.
+    normalised σ_p/σ_1 per frequency for calibration fingerprints. token: an identity unique within the
+    process and never reused (unlike ``id``), on which caches (`Imager` templates) key: treat the arrays
+    as immutable and build a new Fingerprint (e.g. ``dataclasses.replace``) to change one.
     """
 
     data: np.ndarray
@@ -77,6 +82,7 @@ class Fingerprint:
     n_s: float = 1.0
     singular_values: np.ndarray | None = None
     n_t: float | None = None
+    token: int = field(default_factory=lambda: next(_TOKENS), init=False, repr=False, compare=False)
 
     @property
     def norm2(self) -> float:

@@ -12,6 +12,11 @@ On a regular grid r = r_c + n·Δ (n integer) this is a type-1 non-uniform FFT w
 holds a finufft plan whose points are set once per acquisition geometry and grid, and reused for
 every frame. `direct_sum` is the obviously-correct O(N_samples × N_points) reference.
 
+Every kernel implements the `Kernel` protocol (`GridTransform`; `fpcore.kernel_presum.PresumTransform`
+when the sines lie on one lattice), and every kernel class the `KernelType` protocol: which geometries
+it serves (`supports`) and how it is built for one (`for_geometry`). `fpcore.likelihood.Imager` picks
+the class by name or the first that supports the geometry (`ImagingConfig.kernel`).
+
 Sign: with numpy's forward FFT (e^{-i2πft}) a point scatterer at r gives R_θθ ∝ e^{-iK·r}
 (docs/design.md §7 stack note); the focusing phase is therefore e^{+iK·r}. tests/test_kernel.py checks
 that a point's map peaks at its position.
@@ -20,13 +25,42 @@ that a point's map peaks at its position.
 from __future__ import annotations
 
 import os
+from typing import Protocol
 
 import numpy as np
 
 from .geometry import cosines, from_xyz
 from .grid import Grid
 
-__all__ = ["wavevectors", "direct_sum", "GridTransform", "default_threads"]
+__all__ = ["wavevectors", "direct_sum", "GridTransform", "Kernel", "KernelType", "default_threads"]
+
+
+class Kernel(Protocol):
+    """B(r) = Σ_j w_j e^{iK_j·r} on `grid` for one acquisition geometry (docs/design.md §5).
+
+    n_samples: number of samples j = (f, o, i) (C order); ramp: the strength ramp e^{iK_j·r_c} that
+    `execute_ramped` expects already applied (a scalar 1 for kernels that apply it themselves).
+    `__call__(w)` gives the map for raw weights; `execute_ramped(w · ramp)` the same map, for callers
+    that cache w · ramp (γ templates). Maps are complex, grid-shaped.
+    """
+
+    grid: Grid
+    n_samples: int
+    ramp: np.ndarray
+
+    def __call__(self, weights: np.ndarray) -> np.ndarray: ...
+
+    def execute_ramped(self, c: np.ndarray) -> np.ndarray: ...
+
+
+class KernelType(Protocol):
+    """A kernel class (docs/design.md §5): whether it serves a geometry — output and transmit sines on a
+    grid of `ndim` dimensions — and the kernel it builds for one (frequencies, sines, c0, grid, accuracy)."""
+
+    def supports(self, out_sines: np.ndarray, in_sines: np.ndarray, ndim: int) -> bool: ...
+
+    def for_geometry(self, freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, c0: float, grid: Grid,
+                     eps: float) -> Kernel: ...
 
 
 def default_threads() -> int:
@@ -95,6 +129,17 @@ class GridTransform:
                                   nthreads=nthreads or default_threads(), fftw=0,
                                   upsampfac=1.25 if eps >= 1e-4 else 2.0)
         self._plan.setpts(*[p.astype(real_dtype) for p in pts])
+
+    @staticmethod
+    def supports(out_sines: np.ndarray, in_sines: np.ndarray, ndim: int) -> bool:
+        """Every geometry (the general kernel)."""
+        return True
+
+    @classmethod
+    def for_geometry(cls, freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, c0: float, grid: Grid,
+                     eps: float) -> GridTransform:
+        """The kernel of the samples K_j = k_f (s_o + s_i, c_o + c_i) (`wavevectors`) on `grid`."""
+        return cls(wavevectors(freqs, out_sines, in_sines, c0, grid.ndim), grid, eps=eps)
 
     def __call__(self, weights: np.ndarray) -> np.ndarray:
         """Map of Σ_j w_j e^{iK_j·r} on the grid; weights (N_s,) or (n_trans, N_s)."""

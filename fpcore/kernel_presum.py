@@ -448,6 +448,7 @@ class PresumTransform:
     lateral: "exact" (per-frequency DFTs), "nufft" (lateral spreading) or "auto" (fewer operations).
     sigma: oversampling of the fine wavenumber grids (default: the smallest meeting eps).
     nthreads: worker threads (default FP_THREADS or the CPU count). Output: complex64, grid-shaped.
+    A `fpcore.kernel.Kernel` (its `ramp` is 1: the ramp is applied inside) and `KernelType`.
     Not re-entrant: an instance owns its work buffers (one call at a time per instance).
     """
 
@@ -563,6 +564,19 @@ class PresumTransform:
             self._acc = np.zeros((nt, 4 * nglob * max(nf_lat[0], ny)), dtype=np.float32)
             self._Hs = np.zeros((1, nx, ny, 2, nglob), dtype=np.float32)
         self._G = np.zeros(int(self._gbase[-1]), dtype=np.float32)
+        self.ramp = np.ones((), dtype=np.complex64)  # the ramp e^{iK·r_c} is applied inside (P, Q)
+
+    @staticmethod
+    def supports(out_sines: np.ndarray, in_sines: np.ndarray, ndim: int) -> bool:
+        """True when numba is available and the sines lie on one lattice (`applicable`): the `KernelType`
+        test of `fpcore.kernel`."""
+        return nb is not None and PresumTransform.applicable(out_sines, in_sines, ndim)
+
+    @classmethod
+    def for_geometry(cls, freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, c0: float, grid: Grid,
+                     eps: float) -> PresumTransform:
+        """`PresumTransform(freqs, out_sines, in_sines, c0, grid, eps)` (the `KernelType` builder)."""
+        return cls(freqs, out_sines, in_sines, c0, grid, eps=eps)
 
     @staticmethod
     def applicable(out_sines: np.ndarray, in_sines: np.ndarray, ndim: int = 3) -> bool:
@@ -573,6 +587,10 @@ class PresumTransform:
             return lattice(out_sines, in_sines, ndim) is not None
         except ValueError:
             return False
+
+    def execute_ramped(self, c: np.ndarray) -> np.ndarray:
+        """The same map as `__call__` (this kernel applies the ramp itself: `ramp` is 1)."""
+        return self(c)
 
     def __call__(self, weights: np.ndarray) -> np.ndarray:
         """Map Σ_j w_j e^{iK_j·r} on the grid (complex64, grid shape); weights (N_s,) or (n, N_s)."""

@@ -14,24 +14,76 @@ maps, peak positions and contrasts agree.
 
 from __future__ import annotations
 
+from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Generic, TypeVar
 
 import numpy as np
 
 from .acquisition import Acquisition, PlaneWaveData, Probe, output_sines, to_plane_waves
 from .fingerprint import Fingerprint, angular_mask, check_geometry
 from .grid import Grid
-from .kernel import GridTransform, wavevectors
+from .kernel import GridTransform, Kernel, KernelType, wavevectors
 from .kernel_presum import PresumTransform
 
+__all__ = ["Imager", "ImagingConfig", "KERNELS", "make_kernel"]
 
-def _presum_ok(pw: PlaneWaveData, ndim: int) -> bool:
-    try:
-        return PresumTransform.applicable(pw.out_sines, pw.in_sines, ndim)
-    except ImportError:  # numba missing: the general kernel serves
-        return False
+#: The kernel classes by name (docs/design.md §5); kernel="auto" takes the first, in this order, that
+#: supports the geometry: the lattice pre-sum kernel, else the general finufft type-1.
+KERNELS: dict[str, KernelType] = {"presum": PresumTransform, "nufft": GridTransform}
 
-__all__ = ["Imager", "ImagingConfig"]
+_REQUIRES = {"presum": "transmit and output sines on one lattice (and numba)"}
+
+
+def make_kernel(kind: str, pw: PlaneWaveData, grid: Grid, eps: float) -> Kernel:
+    """The kernel of `pw`'s geometry on `grid`: kind 'auto' (the first of `KERNELS` that supports it) or
+    a name of `KERNELS` (ValueError if that class does not support the geometry)."""
+    if kind == "auto":
+        kinds = [k for k in KERNELS.values() if k.supports(pw.out_sines, pw.in_sines, grid.ndim)]
+        if not kinds:
+            raise ValueError(f"kernel: none of {sorted(KERNELS)} supports this geometry")
+        kt = kinds[0]
+    elif kind in KERNELS:
+        kt = KERNELS[kind]
+        if not kt.supports(pw.out_sines, pw.in_sines, grid.ndim):
+            raise ValueError(f"kernel: {kind!r} needs {_REQUIRES.get(kind, 'another geometry')}")
+    else:
+        raise ValueError(f"kernel: expected 'auto' or one of {sorted(KERNELS)}, got {kind!r}")
+    return kt.for_geometry(pw.freqs, pw.out_sines, pw.in_sines, pw.c0, grid, eps)
+
+
+_K = TypeVar("_K")
+_V = TypeVar("_V")
+
+
+class _LRU(Generic[_K, _V]):
+    """A mapping bounded to `maxsize` entries, dropping the least recently used."""
+
+    def __init__(self, maxsize: int) -> None:
+        if maxsize < 1:
+            raise ValueError(f"cache size: expected at least 1, got {maxsize}")
+        self.maxsize = maxsize
+        self._data: OrderedDict[_K, _V] = OrderedDict()
+
+    def __len__(self) -> int:
+        return len(self._data)
+
+    def get(self, key: _K) -> _V | None:
+        value = self._data.get(key)
+        if value is not None:
+            self._data.move_to_end(key)
+        return value
+
+    def put(self, key: _K, value: _V) -> None:
+        self._data[key] = value
+        self._data.move_to_end(key)
+        while len(self._data) > self.maxsize:
+            self._data.popitem(last=False)
+
+    def drop(self, which: Callable[[_K], bool]) -> None:
+        for key in [k for k in self._data if which(k)]:
+            del self._data[key]
 
 
 @dataclass(frozen=True)
@@ -39,7 +91,8 @@ class ImagingConfig:
     """What the processor does to every frame: band [f_min, f_max] (Hz), number of frequencies kept,
     output directions (None: sampled from the probe, `output_sines`), grid, NUFFT accuracy.
 
-    kernel: 'auto' (structured pre-sum kernel when the sines allow it, else finufft), 'nufft' or 'presum'.
+    kernel: 'auto' (structured pre-sum kernel when the sines allow it, else finufft) or a name of
+    `KERNELS`: 'nufft' or 'presum' (`make_kernel`).
     apodization_tiles: split the grid into this many tiles per axis and apply the shift apodization
     A(θ_out, r) A(θ_in, r) of paper eq. BF at each tile's centre (docs/design.md §5); None: no shift apodization
     (the angular filter acts at r0 only and ‖F(r)‖ is constant).
@@ -53,18 +106,25 @@ class ImagingConfig:
     apodization_tiles: tuple[int, ...] | None = None
     kernel: str = "auto"
 
+    def __post_init__(self) -> None:
+        if self.kernel != "auto" and self.kernel not in KERNELS:
+            raise ValueError(f"kernel: expected 'auto' or one of {sorted(KERNELS)}, got {self.kernel!r}")
+
 
 class Imager:
     """Holds one imaging configuration and the kernels of the geometries it has seen.
 
-    Kernels (finufft plans with their points) are cached per (frequencies, sines, c0) so that every
-    frame of the same acquisition geometry reuses them.
+    Kernels (finufft plans with their points) are cached per geometry — the content of (frequencies,
+    sines, c0) — so that every frame of the same acquisition geometry reuses them; γ templates per
+    (fingerprint token, geometry) (`Fingerprint.token`: never reused, unlike ``id``). Both caches keep
+    the `max_kernels` / `max_templates` most recently used entries.
     """
 
-    def __init__(self, config: ImagingConfig) -> None:
+    def __init__(self, config: ImagingConfig, max_kernels: int = 4, max_templates: int = 32) -> None:
         self.config = config
-        self._kernels: dict[tuple, GridTransform] = {}
-        self._templates: dict[tuple, np.ndarray] = {}
+        self._kernels: _LRU[tuple, Kernel] = _LRU(max_kernels)
+        self._templates: _LRU[tuple, np.ndarray] = _LRU(max_templates)
+        self._tiled: _LRU[tuple, list[tuple[tuple[slice, ...], GridTransform, np.ndarray]]] = _LRU(max_kernels)
 
     @property
     def grid(self) -> Grid:
@@ -84,46 +144,43 @@ class Imager:
     def _key(pw: PlaneWaveData) -> tuple:
         return (pw.data.shape, pw.freqs.tobytes(), pw.out_sines.tobytes(), pw.in_sines.tobytes(), float(pw.c0))
 
-    def kernel(self, pw: PlaneWaveData) -> GridTransform | PresumTransform:
-        """The kernel for this geometry: the structured pre-sum kernel when transmit and output sines
-        lie on one lattice (docs/design.md §5, fpcore.kernel_presum), else the general finufft type-1."""
+    def cache_key(self, pw: PlaneWaveData) -> tuple:
+        """The content a kernel of this imager for `pw` depends on: grid axes, accuracy and geometry."""
+        return (tuple(a.tobytes() for a in self.grid.axes), self.config.eps, self._key(pw))
+
+    def kernel(self, pw: PlaneWaveData) -> Kernel:
+        """The kernel for this geometry (`make_kernel` with `ImagingConfig.kernel`): by default the
+        structured pre-sum kernel when transmit and output sines lie on one lattice (docs/design.md §5,
+        fpcore.kernel_presum), else the general finufft type-1."""
         key = self._key(pw)
         kern = self._kernels.get(key)
         if kern is None:
-            if self.config.kernel in ("auto", "presum") and _presum_ok(pw, self.grid.ndim):
-                kern = PresumTransform(pw.freqs, pw.out_sines, pw.in_sines, pw.c0, self.grid, eps=self.config.eps)
-            elif self.config.kernel == "presum":
-                raise ValueError("kernel: 'presum' needs transmit and output sines on one lattice")
-            else:
-                K = wavevectors(pw.freqs, pw.out_sines, pw.in_sines, pw.c0, self.grid.ndim)
-                kern = GridTransform(K, self.grid, eps=self.config.eps)
-            self._kernels[key] = kern
+            kern = make_kernel(self.config.kernel, pw, self.grid, self.config.eps)
+            self._kernels.put(key, kern)
         return kern
 
     def _run(self, pw: PlaneWaveData, weights: np.ndarray) -> np.ndarray:
-        """Σ w e^{iK·r} for weights already multiplied by the kernel's ramp where it has one."""
-        kern = self.kernel(pw)
-        return kern.execute_ramped(weights) if isinstance(kern, GridTransform) else kern(weights)
+        """Σ w e^{iK·r} (paper S7) for weights already multiplied by the kernel's ramp (`Kernel.ramp`)."""
+        return self.kernel(pw).execute_ramped(weights)
 
     def template(self, pw: PlaneWaveData, fp: Fingerprint) -> np.ndarray:
-        """conj(F(r0)) e^{-iK·r0} / ‖F‖ times the kernel's grid ramp, cached per fingerprint object."""
-        key = (id(fp), self._key(pw))
+        """conj(F(r0)) e^{-iK·r0} / ‖F‖ times the kernel's grid ramp (paper S7), cached per fingerprint
+        (its token) and geometry."""
+        key = (fp.token, self._key(pw))
         t = self._templates.get(key)
         if t is None:
             check_geometry(fp, pw)
             norm = np.sqrt(fp.norm2)
             if norm == 0:
                 raise ValueError(f"fingerprint '{fp.name}': is identically zero (gate or filter removed all)")
-            kern = self.kernel(pw)
-            ramp = kern.ramp if isinstance(kern, GridTransform) else np.complex64(1.0)
-            t = fp.centred_conj(self.grid.ndim) * (ramp / np.float32(norm))
-            self._templates[key] = t
+            t = fp.centred_conj(self.grid.ndim) * (self.kernel(pw).ramp / np.float32(norm))
+            self._templates.put(key, t)
         return t
 
     def forget(self, fp: Fingerprint) -> None:
         """Drop cached templates of a fingerprint (after it is removed from a dictionary)."""
-        for key in [k for k in self._templates if k[0] == id(fp)]:
-            del self._templates[key]
+        self._templates.drop(lambda k: k[0] == fp.token)
+        self._tiled.drop(lambda k: k[0] == fp.token)
 
     def field(self, pw: PlaneWaveData) -> np.ndarray:
         """Complex confocal field B(r) = Σ R_θθ e^{iK·r} (paper S7 eq. I_BF; F ≡ 1)."""
@@ -165,8 +222,8 @@ class Imager:
     def _gamma_tiled(self, pw: PlaneWaveData, fp: Fingerprint, probe: Probe, r: np.ndarray,
                      r_norm: float) -> np.ndarray:
         """γ with S = A(θ, r_t) P(θ, Δr) per tile t (paper eq. BF), normalised by ‖F ∘ A‖ per tile."""
-        key = ("tiles", id(fp), self._key(pw))
-        cached = self._templates.get(key)
+        key = (fp.token, self._key(pw), probe.positions.tobytes(), probe.pitch)  # A(θ, r) depends on the probe
+        cached = self._tiled.get(key)
         if cached is None:
             check_geometry(fp, pw)
             K = wavevectors(pw.freqs, pw.out_sines, pw.in_sines, pw.c0, self.grid.ndim)
@@ -180,7 +237,7 @@ class Imager:
                 norm = float(np.sqrt(np.vdot(t, t).real))
                 kern = GridTransform(K, sub, eps=self.config.eps)
                 cached.append((sl, kern, t * kern.ramp / np.float32(max(norm, 1e-300))))
-            self._templates[key] = cached
+            self._tiled.put(key, cached)
         out = np.zeros(self.grid.shape, dtype=np.float32)
         for sl, kern, t in cached:
             out[sl] = np.abs(kern.execute_ramped(r * t)) / r_norm
