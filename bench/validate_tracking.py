@@ -44,7 +44,7 @@ def run(name: str, quick: bool, n_frames: int | None, z_range: tuple[float, floa
     z_range = roi.z_range
     grid = roi.grid(spacing)
     imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
-    fps = sc.fingerprints(fpcore.output_sines(sc.probe, sc.c0, sc.band[1]))
+    fps = sc.fingerprints(imager.out_sines_for(sc.frame(0)))
     lam = sc.c0 / sc.probe.centre_frequency
     bw = sc.band[1] - sc.band[0]
     aperture = sc.probe.aperture[0]

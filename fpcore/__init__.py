@@ -19,6 +19,7 @@ from .acquisition import (
     output_sines,
     to_plane_waves,
 )
+from .background import NullLevel
 from .fingerprint import (
     Fingerprint,
     angular_mask,
@@ -32,7 +33,7 @@ from .fingerprint import (
 from .grid import Grid, Roi
 from .kernel import GridTransform, direct_sum, wavevectors
 from .likelihood import Imager, ImagingConfig
-from .metrics import Detection, contrasts, cramer_rao_precision, detect, pfa
+from .metrics import Detection, contrasts, cramer_rao_precision, detect, paper_pfa
 from .truth import TargetTruth, Truth
 
 __version__ = "0.1.0"
@@ -44,6 +45,7 @@ __all__ = [
     "Grid",
     "GridTransform",
     "Imager",
+    "NullLevel",
     "ImagingConfig",
     "PlaneWaveData",
     "PlaneWaveSequence",
@@ -61,7 +63,7 @@ __all__ = [
     "mirror_fingerprint",
     "moving_fingerprint",
     "output_sines",
-    "pfa",
+    "paper_pfa",
     "point_fingerprint",
     "time_gate",
     "to_plane_waves",

@@ -277,27 +277,56 @@ class PlaneWaveData:
         return 2 * np.pi * self.freqs / self.c0
 
 
+def _lattice_step(values: np.ndarray) -> float | None:
+    """The common step of a set of sines that lie on a uniform lattice (None if not, or a single one)."""
+    u = np.unique(np.round(np.asarray(values, float), 12))
+    if u.size < 2:
+        return None
+    d = np.diff(u)
+    step = float(d.min())
+    if step <= 0 or not np.allclose(d / step, np.round(d / step), atol=1e-6):
+        return None
+    return step
+
+
 def output_sines(probe: Probe, c0: float, f_max: float, n: int | None = None,
-                 s_max: float | None = None) -> np.ndarray:
+                 s_max: float | None = None, field_width: tuple[float, float] | float | None = None,
+                 transmit_sines: np.ndarray | None = None) -> np.ndarray:
     """Output directions sampling the array's angular spectrum (docs/design.md §4.2).
 
-    Per lateral dimension, n sines evenly spread over [-s_max, s_max] (default n = elements along
-    that dimension, s_max = min(0.95, c0/(2 pitch f_c)) — the spatial Nyquist limit of the pitch).
+    Per lateral dimension, sines evenly spread over [-s_max, s_max], s_max = min(0.95, c0/(2 pitch f_c))
+    (the spatial Nyquist limit of the pitch). Their step Δs sets where the receive focus aliases: the
+    sum over output directions is periodic in x with period λ/Δs, so
+    * with `field_width` (the imaging grid's lateral extent W, per axis), Δs ≤ λ_min/W with
+      λ_min = c0/f_max — no alias inside the field of view (docs/design.md §4.2) — and Δs divides the
+      transmit sines' own step when `transmit_sines` lie on a lattice (so the structured kernel applies);
+      never coarser than one direction per element;
+    * else `n` per dimension (default: the elements along it), the aperture's own Nyquist sampling,
+      which aliases every λ/Δs ≈ 2 × aperture: fine for a field of view no wider than that.
     Returns (N_o, 2); a matrix probe gives the disc s_x² + s_y² ≤ s_max² of an x-fastest tensor grid.
     """
     if s_max is None:
         s_max = min(0.95, c0 / (2 * probe.pitch * probe.centre_frequency))
     axes = probe.grid_axes()
-    if probe.is_linear:
-        nx = n or probe.n_elements
-        sx = np.linspace(-s_max, s_max, nx)
-        return np.stack([sx, np.zeros(nx)], axis=1)
-    if axes is None:
+    if not probe.is_linear and axes is None:
         raise ValueError("probe.positions: output_sines needs a linear or regular matrix array")
-    nx = n or axes[0].size
-    ny = n or axes[1].size
-    sx = np.linspace(-s_max, s_max, nx)
-    sy = np.linspace(-s_max, s_max, ny)
+    counts = [probe.n_elements] if probe.is_linear else [axes[0].size, axes[1].size]
+    widths = np.broadcast_to(np.asarray(field_width if field_width is not None else np.nan, float), (2,))
+
+    def axis(k: int) -> np.ndarray:
+        if n is not None or not np.isfinite(widths[k]) or widths[k] <= 0:
+            return np.linspace(-s_max, s_max, n or counts[k])
+        step = min(c0 / f_max / widths[k], 2 * s_max / max(counts[k] - 1, 1))
+        lattice = _lattice_step(transmit_sines[:, k]) if transmit_sines is not None else None
+        if lattice is not None:
+            step = lattice / np.ceil(0.98 * lattice / step)  # 2 % slack: no extra halving for round-off
+        m = int(np.floor(s_max / step + 1e-9))
+        return step * np.arange(-m, m + 1)
+
+    sx = axis(0)
+    if probe.is_linear:
+        return np.stack([sx, np.zeros(sx.size)], axis=1)
+    sy = axis(1)
     yy, xx = np.meshgrid(sy, sx, indexing="ij")
     keep = xx.ravel() ** 2 + yy.ravel() ** 2 < s_max ** 2 + 1e-12  # drop evanescent corners
     return np.stack([xx.ravel()[keep], yy.ravel()[keep]], axis=1)

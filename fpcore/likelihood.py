@@ -133,7 +133,10 @@ class Imager:
     def out_sines_for(self, acq: Acquisition) -> np.ndarray:
         if self.config.out_sines is not None:
             return np.asarray(self.config.out_sines, dtype=float)
-        return output_sines(acq.probe, acq.c0, self.config.band[1])
+        g = self.grid
+        width = (float(np.ptp(g.x)), float(np.ptp(g.y)) if g.y is not None else 0.0)
+        return output_sines(acq.probe, acq.c0, self.config.band[1], field_width=width,
+                            transmit_sines=acq.sequence.sines)
 
     def plane_waves(self, acq: Acquisition) -> PlaneWaveData:
         """Band selection and output projection: R_θθ(f, θ_out, θ_in) (docs/design.md §4.1–4.2)."""

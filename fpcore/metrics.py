@@ -1,11 +1,21 @@
-"""Detection figures: contrasts, false-alarm probability, Cramér–Rao precision, gain (docs/design.md §4.8–4.11).
+"""Detection figures: contrasts, a calibrated false-alarm probability, Cramér–Rao precision, gain
+(docs/design.md §4.8–4.11).
 
-Two contrasts, named apart (docs/design.md §4.8):
+Contrasts, named apart (docs/design.md §4.8):
 * ``c_gamma`` = γ(target) / mean(γ outside the target) — the paper's main-text figure (Fig. 2);
-* ``c_pfa`` = (γ_max/γ_M)², γ_M = √⟨γ²⟩ outside — the contrast of the false-alarm section (S6).
+* ``c_pfa`` = (γ_max/γ_M)², γ_M = √⟨γ²⟩ outside — the quantity the paper's S6 writes as C;
+* ``c_local`` = γ/γ_M(r), against the *local* null level of γ at the peak (fpcore.cfar): the amplitude
+  contrast the false-alarm probability is computed from.
 
-False alarm (paper Supplementary S6, eq. FR): PFA = 1 − [1 − exp(−π C²/4)]^L with C = c_pfa and L the
-number of independent speckle grains in the field of view. Check: C = 6, L = 25³ gives ≈ 1e-8.
+False alarm (docs/design.md §4.9). ``pfa`` of a detection is calibrated: the probability that the
+maximum of target-free γ over the searched region reaches the observed local contrast, from a local
+null level (physics: fpcore.background; CFAR: fpcore.cfar) and random-field theory for the maximum —
+checked on target-free maps (tests/test_metrics.py, bench/validate_pfa.py). `paper_pfa` keeps the
+paper's S6 formula for reference, with its slip corrected: the paper writes C = (γ_max/γ_M)² inside
+exp(−π C²/4), but its own figure (C ≈ 6, L = 25³ → 1e−8) is the amplitude ratio C_γ = γ_max/⟨γ⟩, and the
+Rayleigh tail it starts from is exp(−(γ/γ_M)²) = exp(−(π/4)(γ/⟨γ⟩)²). Fed the squared ratio, the formula
+made target-free frames report PFA ≈ 1e−37 (measured); even with the amplitude ratio, a global mean and
+a formula for L do not give an honest probability on non-stationary maps.
 
 Precision (paper eq. loc and S5): lateral δρ_L = δρ_D/√C_γ with δρ_D = λ/(2 sin α); axial
 δz_L = λ/(4√2 π √C_γ). The paper prints the axial form (eq. axial2) and Quazi's σ_t (eq. Quazi) with
@@ -18,14 +28,16 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from .cfar import NullModel, null_model
 from .grid import Grid
 
 __all__ = [
-    "pfa",
+    "DEFAULT_MAX_PFA",
+    "paper_pfa",
     "contrasts",
     "diffraction_resolution",
     "cramer_rao_precision",
-    "speckle_grains",
+    "resolution_cell",
     "Detection",
     "detect",
     "refine_peak",
@@ -34,8 +46,13 @@ __all__ = [
 ]
 
 
-def pfa(c: float | np.ndarray, n_grains: float) -> np.ndarray | float:
-    """PFA = 1 − [1 − exp(−π C²/4)]^L (paper S6, eq. FR with C = (γ_max/γ_M)²), computed stably."""
+DEFAULT_MAX_PFA = 1e-3  # a detection is reported only below this calibrated PFA (docs/design.md §4.9)
+
+
+def paper_pfa(c: float | np.ndarray, n_grains: float) -> np.ndarray | float:
+    """The paper's S6 figure: PFA = 1 − [1 − exp(−π C²/4)]^L with C the *amplitude* contrast γ_max/⟨γ⟩
+    (the paper prints C = (γ_max/γ_M)²: a slip, module doc) and L independent Rayleigh cells. For
+    reference only: detections report the calibrated PFA of fpcore.cfar."""
     c = np.asarray(c, dtype=float)
     p_pixel = np.exp(-np.pi * c ** 2 / 4)
     out = -np.expm1(n_grains * np.log1p(-np.minimum(p_pixel, 1 - 1e-300)))
@@ -102,12 +119,10 @@ def cramer_rao_precision(wavelength: float, resolution: float, c_gamma: float) -
     return resolution / np.sqrt(c), wavelength / (4 * np.sqrt(2) * np.pi * np.sqrt(c))
 
 
-def speckle_grains(grid: Grid, resolution: float, axial_resolution: float) -> float:
-    """L = field-of-view volume / speckle-grain volume (δρ_D² δz in 3D, δρ_D δz in 2D) (paper S6)."""
-    extent = [max(float(np.ptp(a)), s) for a, s in zip(grid.axes, grid.spacing, strict=True)]
-    vol = float(np.prod(extent))
-    grain = resolution * axial_resolution if grid.ndim == 2 else resolution ** 2 * axial_resolution
-    return max(vol / grain, 1.0)
+def resolution_cell(wavelength: float, aperture: float, bandwidth: float, c0: float,
+                    depth: float) -> tuple[float, float]:
+    """(δρ_D at `depth`, c0/(2Δf)): the lateral and axial resolution cells (paper, main text after eq. G)."""
+    return diffraction_resolution(wavelength, aperture, max(depth, wavelength)), c0 / (2 * bandwidth)
 
 
 def refine_peak(gamma: np.ndarray, grid: Grid, index: tuple[int, ...]) -> tuple[np.ndarray, float]:
@@ -131,6 +146,17 @@ def refine_peak(gamma: np.ndarray, grid: Grid, index: tuple[int, ...]) -> tuple[
     return p, val
 
 
+def _gamma_peak_near(gamma: np.ndarray, grid: Grid, index: tuple[int, ...],
+                     resolution: tuple[float, float]) -> tuple[int, ...]:
+    """The node of largest γ within half a resolution cell of `index`: the significance peaks where γ
+    stands out most from its local level, the position estimate is γ's own peak (paper eq. loc)."""
+    cells = [resolution[0]] * (grid.ndim - 1) + [resolution[1]]
+    half = [max(1, int(round(0.5 * c / d))) for c, d in zip(cells, grid.spacing, strict=True)]
+    box = tuple(slice(max(i - h, 0), i + h + 1) for i, h in zip(index, half, strict=True))
+    sub = np.unravel_index(int(np.argmax(gamma[box])), gamma[box].shape)
+    return tuple(int(b.start + j) for b, j in zip(box, sub, strict=True))
+
+
 @dataclass
 class Detection:
     """One detected target on one γ-map (SI units; the unit is in the name)."""
@@ -143,6 +169,8 @@ class Detection:
     pfa: float
     precision_m: list[float]  # [lateral δρ_L, axial δz_L]
     index: list[int]
+    c_local: float = 0.0  # γ/γ_M(r) against the local null level (module doc)
+    significance: float = 0.0  # S = −ln P(T > T(r)) per node under the local null law (fpcore.cfar)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -150,35 +178,42 @@ class Detection:
 
 def detect(gamma: np.ndarray, grid: Grid, wavelength: float, aperture: float, bandwidth: float, c0: float,
            name: str = "target", exclusion_radius: float | None = None, n_peaks: int = 1,
-           n_grains: float | None = None, interior: bool = False) -> list[Detection]:
-    """The n_peaks strongest maxima of a γ-map with contrasts, PFA and Cramér–Rao precision.
+           interior: bool = False, level: np.ndarray | None = None, visible: np.ndarray | None = None,
+           max_pfa: float | None = DEFAULT_MAX_PFA, null: NullModel | None = None) -> list[Detection]:
+    """The n_peaks most significant maxima of a γ-map with contrasts, calibrated PFA and Cramér–Rao precision.
 
-    Peaks are separated by exclusion_radius (default 2 δρ_D at the peak depth); each contrast is
-    taken against the map outside every accepted peak's exclusion ball. ``interior=True`` keeps only
-    local maxima of γ farther than δρ_D (at the grid's middle depth) from the border
-    (`interior_peaks`): a maximum on or next to the border is, most often, the flank of something
-    outside the region of interest — e.g. γ rising towards a scattering layer's surface — not a peak
-    inside it (a heuristic: a real target within δρ_D of the border is missed too).
+    The map is searched on its local significance S (fpcore.cfar): γ² against a local null level —
+    `level` (fpcore.background.NullLevel: the data's energy in the fingerprint's time support times the
+    aperture factor) corrected by a censored cell-averaging CFAR, or the CFAR alone — so that a maximum
+    under a bright interface and one in a dim, deep region are judged on the same scale, over the whole
+    record, with no depth window to pick. `visible` restricts the search (nodes where the fingerprint can
+    be tested). Peaks are separated by exclusion_radius (default 2 δρ_D at the peak depth); `c_gamma` is
+    taken against the map outside every accepted peak's exclusion ball. A peak is kept only when its
+    calibrated PFA is below `max_pfa` (default 1e-3; None keeps every peak, e.g. for figures).
+    ``interior=True`` also drops maxima within δρ_D of the grid's border (`interior_peaks`, a heuristic
+    kept as an option: the default does not need it).
     """
     g = np.asarray(gamma, dtype=np.float32)
-    work = g.copy()
+    mid = 0.5 * (grid.z[0] + grid.z[-1])
+    res_mid, axial_res = resolution_cell(wavelength, aperture, bandwidth, c0, mid)
+    nm = null if null is not None else null_model(g, grid, (res_mid, axial_res), level=level, visible=visible)
+    sig = nm.significance
+    work = np.where(nm.visible, sig, -np.inf).astype(np.float64)
     mesh = _mesh(grid)
     if interior:
-        mid = 0.5 * (grid.z[0] + grid.z[-1])
-        work[~interior_peaks(g, grid, diffraction_resolution(wavelength, aperture, max(mid, wavelength)),
-                             mesh)] = -np.inf
-    found: list[tuple[tuple[int, ...], np.ndarray, float, float]] = []
-    axial_res = c0 / (2 * bandwidth)
+        work[~interior_peaks(g, grid, res_mid, mesh)] = -np.inf
+    found: list[tuple[tuple[tuple[int, ...], tuple[int, ...]], np.ndarray, float, float]] = []
     while len(found) < n_peaks:
-        idx = np.unravel_index(int(np.argmax(work)), work.shape)
-        if not np.isfinite(work[idx]) or work[idx] <= 0:
+        top = np.unravel_index(int(np.argmax(work)), work.shape)
+        if not np.isfinite(work[top]):
             break
+        idx = _gamma_peak_near(g, grid, top, (res_mid, axial_res))
         pos, val = refine_peak(g, grid, idx)
         res = diffraction_resolution(wavelength, aperture, max(pos[2], wavelength))
         rad = exclusion_radius if exclusion_radius is not None else 2 * res
         work[~_outside_mask(grid, pos, rad, mesh)] = -np.inf
-        work[idx] = -np.inf  # even if refinement moved the peak farther than rad
-        found.append((idx, pos, val, rad))
+        work[top] = -np.inf  # even if refinement moved the peak farther than rad
+        found.append(((top, idx), pos, val, rad))
     if not found:
         return []
     outside = np.ones(g.shape, dtype=bool)
@@ -188,12 +223,15 @@ def detect(gamma: np.ndarray, grid: Grid, wavelength: float, aperture: float, ba
     mean = float(g_out.mean())
     g_m = float(np.sqrt(np.mean(g_out.astype(np.float64) ** 2)))
     dets = []
-    for idx, pos, val, _ in found:
+    for (top, idx), pos, val, _ in found:
         res = diffraction_resolution(wavelength, aperture, max(pos[2], wavelength))
         c_gamma = val / mean if mean > 0 else np.inf
         c = (val / g_m) ** 2 if g_m > 0 else np.inf
-        L = n_grains if n_grains is not None else speckle_grains(grid, res, axial_res)
-        dets.append(Detection(name, [float(v) for v in pos], float(val), float(c_gamma), float(c),
-                              float(pfa(c, L)), [float(v) for v in cramer_rao_precision(wavelength, res, c_gamma)],
-                              [int(i) for i in idx]))
+        s = float(sig[top])
+        p = nm.pfa(s)
+        if max_pfa is not None and not p < max_pfa:
+            continue
+        dets.append(Detection(name, [float(v) for v in pos], float(val), float(c_gamma), float(c), float(p),
+                              [float(v) for v in cramer_rao_precision(wavelength, res, c_gamma)],
+                              [int(i) for i in idx], float(np.sqrt(max(float(nm.statistic[top]), 0.0))), s))
     return dets

@@ -6,9 +6,9 @@ while the target's γ stays high near its last position. The tracker therefore:
 * predicts each track with a constant-velocity Kalman filter (filterpy's `KalmanFilter`; white-noise
   acceleration process noise);
 * searches the γ-map only inside a gate around the prediction (Mahalanobis radius `gate_sigma` of the
-  innovation covariance, at least `min_gate`), so the false-alarm probability of the gated maximum is
-  computed with the number of speckle grains L inside the gate, not in the whole field of view
-  (paper S6 with L → L_gate): PFA = 1 − [1 − exp(−π C²/4)]^{L_gate}, C = (γ/γ_M)²;
+  innovation covariance, at least `min_gate`) for the most significant node against the map's local
+  null level (fpcore.cfar, docs/design.md §4.9), so the calibrated false-alarm probability of the gated
+  maximum is that of a maximum over the gate's resels, not over the whole field of view;
 * uses the Cramér–Rao precision of each measurement as its noise, R = diag(δρ_L², …, δz²) with
   δρ_L = δρ_D/√C_γ (paper eq. loc) and, axially, the envelope resolution c0/(2Δf)/√C_γ (the peak of |γ|
   carries no carrier phase, so the paper's λ-based axial bound is not reached by this estimator),
@@ -18,9 +18,10 @@ while the target's γ stays high near its last position. The tracker therefore:
   at least δρ_D from the grid's border only — maxima on or next to the border are, most often, the
   flanks of something outside the region of interest, e.g. γ rising under a suspension's surface; a
   track whose prediction is itself in that band may still take them) whose field-of-view PFA is below
-  `p_birth`, confirms it after
-  `confirm_hits` hits and drops it after `max_misses` consecutive misses;
-* reports confidence = 1 − PFA of the last accepted measurement, decayed by misses;
+  `p_birth` (calibrated), confirms it after `confirm_hits` hits; a track without a significant measurement
+  (gated PFA above `p_keep`) is *coasting*, and after `max_misses` consecutive misses *lost* (reported
+  once with that status, then dropped);
+* reports confidence = 1 − PFA of the last accepted measurement, halved by each miss since;
 * optionally (`integrate_frames` = K > 1) searches the mean of the last K γ-maps: the fog decorrelates
   from frame to frame (docs/design.md §6, the suspension's frame-to-frame decorrelation) while a target's γ
   persists, so fog peaks fall by up to √K against it. The mean's peak sits at the target's mean position
@@ -40,6 +41,7 @@ import numpy as np
 from filterpy.kalman import KalmanFilter
 from scipy.optimize import linear_sum_assignment
 
+from .cfar import NullModel, null_model
 from .grid import Grid
 from .metrics import (
     border_band,
@@ -47,7 +49,6 @@ from .metrics import (
     detect,
     diffraction_resolution,
     interior_peaks,
-    pfa,
     refine_peak,
 )
 
@@ -61,14 +62,14 @@ class TrackerConfig:
     accel_noise: float = 5e-3  # m/s², white-acceleration level of the CV model (0.5 mm/s per frame at 10 Hz)
     gate_sigma: float = 4.0  # gate radius in standard deviations of the innovation
     min_gate: float | None = None  # m; default 2 δρ_D
-    p_keep: float = 1e-2  # gated PFA below which a measurement is accepted
-    p_birth: float = 1e-4  # field-of-view PFA below which an unassigned peak starts a track
-    confirm_hits: int = 2
+    p_keep: float = 1e-2  # calibrated gated PFA below which a measurement is accepted
+    p_birth: float = 1e-3  # calibrated field-of-view PFA below which an unassigned peak starts a track
+    confirm_hits: int = 2  # hits (birth included) after which a track is confirmed
     max_misses: int = 5
     max_tracks_per_map: int = 2
     default_dt: float = 0.1  # s, when frames carry no distinct timestamps
     initial_speed_sigma: float = 5e-3  # m/s, prior on a new track's speed
-    skip_border: bool = True  # births and gates take interior local maxima only (see module doc)
+    skip_border: bool = False  # births and gates take interior local maxima only (a heuristic; module doc)
     integrate_frames: int = 1  # K: search the mean of the last K γ-maps (see module doc)
 
 
@@ -109,10 +110,17 @@ class _Track:
     c_gamma: float = 0.0
     precision: np.ndarray | None = None
     history: list[np.ndarray] = field(default_factory=list)
+    confirm_hits: int = 2
+    max_misses: int = 5
 
     @property
     def status(self) -> str:
-        return "confirmed" if self.hits >= 2 else "tentative"
+        """tentative → confirmed (confirm_hits hits) → coasting (missed since) → lost (too many misses)."""
+        if self.misses > self.max_misses:
+            return "lost"
+        if self.hits < self.confirm_hits:
+            return "tentative"
+        return "coasting" if self.misses else "confirmed"
 
 
 class Tracker:
@@ -133,7 +141,7 @@ class Tracker:
         mid = 0.5 * (grid.z[0] + grid.z[-1])
         self._margin = diffraction_resolution(wavelength, aperture, max(mid, wavelength))  # border band width
         self._band = border_band(grid, self._margin, self._mesh)
-        self._recent: dict[str, deque[np.ndarray]] = {}
+        self._recent: dict[str, deque[tuple[np.ndarray, np.ndarray | None]]] = {}
         if self.config.integrate_frames < 1:
             raise ValueError(f"integrate_frames: expected an integer ≥ 1, got {self.config.integrate_frames}")
         self.nd = grid.ndim
@@ -179,12 +187,18 @@ class Tracker:
                              [dt ** 3 / 2 * np.eye(nd), dt ** 2 * np.eye(nd)]])
 
     # --- per-frame update -------------------------------------------------------------------
-    def update(self, gamma_maps: dict[str, np.ndarray], timestamp: float | None = None) -> list[TrackState]:
-        """Advance all tracks with this frame's γ-maps (one per fingerprint name)."""
+    def update(self, gamma_maps: dict[str, np.ndarray], timestamp: float | None = None,
+               levels: dict[str, tuple[np.ndarray, np.ndarray | None]] | None = None) -> list[TrackState]:
+        """Advance all tracks with this frame's γ-maps (one per fingerprint name).
+
+        levels: per name, (null level of γ², visible nodes) from fpcore.background.NullLevel — the
+        physical background the significance is measured against (default: the CFAR alone).
+        """
         dt = self.config.default_dt
         if timestamp is not None and self._last_time is not None and timestamp > self._last_time:
             dt = timestamp - self._last_time
         self._last_time = timestamp if timestamp is not None else (self._last_time or 0.0) + dt
+        self.tracks = [t for t in self.tracks if t.status != "lost"]  # reported lost once, last frame
         for tr in self.tracks:
             self._set_dynamics(tr.kf, dt)
             tr.kf.predict()
@@ -193,56 +207,62 @@ class Tracker:
             g = np.asarray(gamma, np.float32)
             if g.shape != self.grid.shape:
                 raise ValueError(f"gamma_maps[{name!r}]: expected shape {self.grid.shape}, got {g.shape}")
+            level, visible = (levels or {}).get(name, (None, None))
             recent = self._recent.setdefault(name, deque(maxlen=self.config.integrate_frames))
-            recent.append(g)
-            self._update_map(name, g, np.mean(recent, axis=0) if len(recent) > 1 else g)
-        self.tracks = [t for t in self.tracks if t.misses <= self.config.max_misses]
+            recent.append((g, level))
+            if len(recent) > 1:
+                searched = np.mean([m for m, _ in recent], axis=0)
+                lv = None if any(v is None for _, v in recent) else np.mean([v for _, v in recent], axis=0)
+            else:
+                searched, lv = g, level
+            mid = 0.5 * (self.grid.z[0] + self.grid.z[-1])
+            nm = null_model(searched, self.grid, self._resolution(mid), level=lv, visible=visible)
+            self._update_map(name, g, searched, nm)
         return self.states()
 
-    def _background(self, gamma: np.ndarray, centres: list[np.ndarray]) -> tuple[float, float]:
+    def _gated_peak(self, gamma: np.ndarray, nm: NullModel, tr: _Track,
+                    allowed: np.ndarray | None) -> tuple[np.ndarray, float, float, np.ndarray] | None:
+        """Most significant node inside the track's gate, among the `allowed` nodes (interior local maxima)
+        unless the prediction itself is in the border band: (coords, γ, calibrated gated PFA, S)."""
+        kf = tr.kf
+        depth = kf.x[self.nd - 1]
+        res, _ = self._resolution(depth)
+        s_cov = kf.H @ kf.P @ kf.H.T + self._noise(4.0, depth)  # nominal C_γ for the gate size
+        radius = self.config.gate_sigma * np.sqrt(np.linalg.eigvalsh(s_cov).max())
+        radius = max(radius, self.config.min_gate or 2 * res)
+        pred = kf.x[: self.nd]
+        d2 = sum((m - ci) ** 2 for m, ci in zip(self._mesh, pred, strict=True))
+        inside = (d2 <= radius ** 2) & nm.visible
+        candidates = inside
+        if allowed is not None and not self._band[self.grid.nearest_index(self._r3(pred))]:
+            candidates = inside & allowed  # a border maximum is the flank of something outside
+        if not candidates.any():
+            return None
+        masked = np.where(candidates, nm.significance, -np.inf)
+        idx = np.unravel_index(int(np.argmax(masked)), gamma.shape)
+        pos3, val = refine_peak(gamma, self.grid, idx)
+        radius_nodes = np.array([radius / d for d in self.grid.spacing])
+        p = nm.gate_pfa(float(nm.significance[idx]), radius_nodes)
+        return self._coords(pos3), val, p, s_cov
+
+    def _background_mean(self, gamma: np.ndarray, centres: list[np.ndarray]) -> float:
+        """mean(γ) outside 2 δρ_D of every track: the denominator of C_γ (paper's figure, §4.8)."""
         outside = np.ones(gamma.shape, bool)
         for c in centres:
             res, _ = self._resolution(c[-1])
             d2 = sum((m - ci) ** 2 for m, ci in zip(self._mesh, c, strict=True))
             outside &= d2 > (2 * res) ** 2
         g = gamma[outside] if outside.any() else gamma.ravel()
-        return float(g.mean()), float(np.sqrt(np.mean(g.astype(np.float64) ** 2)))
+        return float(g.mean())
 
-    def _gated_peak(self, gamma: np.ndarray, tr: _Track,
-                    allowed: np.ndarray | None) -> tuple[np.ndarray, float, float, np.ndarray] | None:
-        """Maximum of γ inside the track's gate, among the `allowed` nodes (interior local maxima) unless
-        the prediction itself is in the border band: (coords, γ, number of grains in the gate, S)."""
-        kf = tr.kf
-        depth = kf.x[self.nd - 1]
-        res, ax_res = self._resolution(depth)
-        s_cov = kf.H @ kf.P @ kf.H.T + self._noise(4.0, depth)  # nominal C_γ for the gate size
-        radius = self.config.gate_sigma * np.sqrt(np.linalg.eigvalsh(s_cov).max())
-        radius = max(radius, self.config.min_gate or 2 * res)
-        pred = kf.x[: self.nd]
-        d2 = sum((m - ci) ** 2 for m, ci in zip(self._mesh, pred, strict=True))
-        inside = d2 <= radius ** 2
-        candidates = inside
-        if allowed is not None and not self._band[self.grid.nearest_index(self._r3(pred))]:
-            candidates = inside & allowed  # a border maximum is the flank of something outside
-        if not candidates.any():
-            return None
-        masked = np.where(candidates, gamma, -np.inf)
-        idx = np.unravel_index(int(np.argmax(masked)), gamma.shape)
-        pos3, val = refine_peak(gamma, self.grid, idx)
-        grain = res * ax_res if self.nd == 2 else res ** 2 * ax_res
-        cell = float(np.prod(self.grid.spacing))
-        n_grains = max(inside.sum() * cell / grain, 1.0)
-        return self._coords(pos3), val, n_grains, s_cov
-
-    def _update_map(self, name: str, current: np.ndarray, gamma: np.ndarray) -> None:
+    def _update_map(self, name: str, current: np.ndarray, gamma: np.ndarray, nm: NullModel) -> None:
         """Gate, assign and update the tracks of `name` on `gamma` (the current map or the window's mean)."""
         cfg = self.config
         tracks = [t for t in self.tracks if t.fingerprint == name]
         allowed = interior_peaks(gamma, self.grid, self._margin, self._mesh) if cfg.skip_border else None
-        gated = [self._gated_peak(gamma, t, allowed) for t in tracks]
+        gated = [self._gated_peak(gamma, nm, t, allowed) for t in tracks]
         centres = [t.kf.x[: self.nd] for t in tracks]
-        mean, g_m = self._background(gamma, centres)
-        cur_mean = mean if current is gamma else self._background(current, centres)[0]
+        cur_mean = self._background_mean(current, centres)
         # Candidates: each track's gated maximum; cost = Mahalanobis distance² to each track.
         cands = [g for g in gated if g is not None]
         assigned: dict[int, int] = {}
@@ -262,12 +282,11 @@ class Tracker:
             if j is None:
                 self._miss(tr)
                 continue
-            c, val, n_grains, _ = cands[j]
-            c_gamma = self._contrast(current, gamma, c, val, cur_mean)
-            p = float(pfa((val / g_m) ** 2 if g_m > 0 else np.inf, n_grains))
+            c, val, p, _ = cands[j]
             if p > cfg.p_keep:
                 self._miss(tr)
                 continue
+            c_gamma = self._contrast(current, gamma, c, val, cur_mean)
             noise = self._noise(c_gamma, c[-1])
             tr.kf.update(c, R=noise)
             tr.c_gamma = float(c_gamma)
@@ -279,7 +298,7 @@ class Tracker:
             tr.last_pfa = p
             tr.confidence = 1.0 - p
             tr.history.append(tr.kf.x[: self.nd].copy())
-        self._births(name, gamma, current, tracks)
+        self._births(name, gamma, current, tracks, nm)
 
     def _contrast(self, current: np.ndarray, searched: np.ndarray, c: np.ndarray, val: float, mean: float) -> float:
         """C_γ of the current frame's map at `c` against its mean `mean` (the searched map's refined
@@ -294,30 +313,30 @@ class Tracker:
         tr.confidence *= 0.5
         tr.history.append(tr.kf.x[: self.nd].copy())
 
-    def _births(self, name: str, gamma: np.ndarray, current: np.ndarray, tracks: list[_Track]) -> None:
+    def _births(self, name: str, gamma: np.ndarray, current: np.ndarray, tracks: list[_Track],
+                nm: NullModel) -> None:
         cfg = self.config
-        if len(tracks) >= cfg.max_tracks_per_map:
+        if len([t for t in tracks if t.status != "lost"]) >= cfg.max_tracks_per_map:
             return
         dets = detect(gamma, self.grid, self.wavelength, self.aperture, self.bandwidth, self.c0, name=name,
-                      n_peaks=cfg.max_tracks_per_map, interior=cfg.skip_border)
+                      n_peaks=cfg.max_tracks_per_map, interior=cfg.skip_border, max_pfa=cfg.p_birth, null=nm)
         for det in dets:
-            if len([t for t in self.tracks if t.fingerprint == name]) >= cfg.max_tracks_per_map:
+            live = [t for t in self.tracks if t.fingerprint == name and t.status != "lost"]
+            if len(live) >= cfg.max_tracks_per_map:
                 break
-            if det.pfa > cfg.p_birth:
-                continue
             c = self._coords(np.array(det.position_m))
             res, _ = self._resolution(c[-1])
-            if any(np.linalg.norm(t.kf.x[: self.nd] - c) < 4 * res for t in self.tracks if t.fingerprint == name):
+            if any(np.linalg.norm(t.kf.x[: self.nd] - c) < 4 * res for t in live):
                 continue
             c_gamma = det.c_gamma
             if current is not gamma:  # the window's mean was searched: C_γ of the current frame (module doc)
-                centres = [np.asarray(d.position_m) for d in dets]
-                mean, _ = self._background(current, [self._coords(p) for p in centres])
+                mean = self._background_mean(current, [self._coords(np.asarray(d.position_m)) for d in dets])
                 c_gamma = self._contrast(current, gamma, c, det.gamma_max, mean)
             noise = self._noise(c_gamma, c[-1])
             kf = self._new_filter(c, noise)
             tr = _Track(self._next_id, name, kf, gamma=det.gamma_max, last_pfa=det.pfa, confidence=1 - det.pfa,
-                        c_gamma=c_gamma, precision=np.sqrt(np.diag(noise)))
+                        c_gamma=c_gamma, precision=np.sqrt(np.diag(noise)), confirm_hits=cfg.confirm_hits,
+                        max_misses=cfg.max_misses)
             tr.history.append(c.copy())
             self._next_id += 1
             self.tracks.append(tr)

@@ -19,7 +19,7 @@ def setup():
     sc = scenario("sinking-sphere", quick=True, seed=0)
     grid = sc.roi.grid()  # x ±11 mm, y ±5 mm, z 20–31 mm, 0.25 mm
     imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
-    fps = sc.fingerprints(fpcore.output_sines(sc.probe, sc.c0, sc.band[1]))
+    fps = sc.fingerprints(imager.out_sines_for(sc.frame(0)))
     return sc, grid, imager, fps
 
 

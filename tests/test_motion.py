@@ -51,7 +51,7 @@ def test_motion_aware_fingerprint_undoes_the_smear_of_a_fast_target() -> None:
     grid = fpcore.Grid.regular((r[0] - 3e-3, r[0] + 3e-3), (r[2] - 3e-3, r[2] + 3e-3), 0.1e-3)
     imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
     pw = imager.plane_waves(acq)
-    fp = sc.fingerprints(fpcore.output_sines(sc.probe, sc.c0, sc.band[1]))["cylinder"]
+    fp = sc.fingerprints(pw.out_sines)["cylinder"]
     tau = sc.sequence.transmit_times()
     g_static = imager.gamma(pw, fp)
     g_moving = imager.gamma(pw, fpcore.moving_fingerprint(fp, v, tau))

@@ -81,16 +81,19 @@ def _ramp_to_top(grid: Grid, amp: float) -> np.ndarray:
     return amp * np.exp(-(z - grid.z[0]) / 0.5e-3)
 
 
-def test_detect_interior_skips_maxima_on_the_border() -> None:
+def test_detect_finds_the_target_under_a_bright_border_without_the_heuristic() -> None:
+    """γ rising towards the top border (as under a suspension's surface) holds the global maximum; the
+    local significance (fpcore.cfar) still picks the target, with or without the border heuristic."""
     from fpcore import detect
 
     rng = np.random.default_rng(1)
     grid = Grid.centred((0.0, 25e-3), (120, 120), 0.15e-3)
     target = np.array([2e-3, 0.0, 26e-3])
     gamma = _fog(rng, grid.shape) + _ramp_to_top(grid, 0.9) + _blob(grid, target, 0.5, 0.3e-3)
+    assert grid.position(np.unravel_index(int(np.argmax(gamma)), gamma.shape))[2] < grid.z[0] + 0.5e-3
     plain = detect(gamma, grid, LAM, 20e-3, 0.8e6, 1500.0)[0]
     inner = detect(gamma, grid, LAM, 20e-3, 0.8e6, 1500.0, interior=True)[0]
-    assert plain.position_m[2] < grid.z[0] + 0.5e-3  # the plain maximum sits on the top border
+    assert np.linalg.norm(np.array(plain.position_m) - target) < 0.3e-3
     assert np.linalg.norm(np.array(inner.position_m) - target) < 0.3e-3
 
 
@@ -124,10 +127,11 @@ def test_integrating_frames_suppresses_decorrelating_fog_spikes() -> None:
                           TrackerConfig(max_tracks_per_map=1, integrate_frames=k_frames))
         errs = []
         for k in range(30):
-            gamma = _fog(rng, grid.shape) + _blob(grid, truth, 0.35, 0.3e-3)
+            # A target significant at the default birth threshold (calibrated PFA < 1e-3 on this map).
+            gamma = _fog(rng, grid.shape) + _blob(grid, truth, 0.45, 0.3e-3)
             if k > 0:  # a spike brighter than the target, 0.8 mm away, at a new place every frame
                 ang = rng.uniform(0, 2 * np.pi)
-                gamma += _blob(grid, truth + 0.8e-3 * np.array([np.cos(ang), 0.0, np.sin(ang)]), 0.5, 0.25e-3)
+                gamma += _blob(grid, truth + 0.8e-3 * np.array([np.cos(ang), 0.0, np.sin(ang)]), 0.65, 0.25e-3)
             (state,) = tracker.update({"t": gamma.astype(np.float32)}, 0.1 * k)
             errs.append(np.linalg.norm(np.array(state.position_m) - truth))
         return np.array(errs)
@@ -153,7 +157,7 @@ def test_tracks_the_simulated_sinking_cylinder() -> None:
     sc = scenario("sinking-cylinder", quick=True, seed=0, n_frames=10)
     grid = sc.roi.grid()  # x ±11 mm, z 20–31 mm, 0.1 mm
     imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
-    fps = sc.fingerprints(fpcore.output_sines(sc.probe, sc.c0, sc.band[1]))
+    fps = sc.fingerprints(imager.out_sines_for(sc.frame(0)))
     lam = sc.c0 / sc.probe.centre_frequency
     ap = sc.probe.aperture[0]
     tracker = Tracker(grid, lam, ap, sc.band[1] - sc.band[0], sc.c0, TrackerConfig(max_tracks_per_map=1))

@@ -1,0 +1,162 @@
+"""The local null level of a γ-map from the data's own energy: the Cauchy–Schwarz bound made local
+(docs/design.md §4.9).
+
+γ (paper eq. P) divides |⟨R, F(r)⟩| by the energy of the *whole* record, so its background follows the
+echo energy: high under a strong interface, low in deep, attenuated regions. Under the null hypothesis
+of the paper's S6 — reflection-matrix coefficients that are independent random variables — but with a
+variance v(θ_out, θ_in, t) that changes with time (the fog's echo decays with depth), the numerator
+N(r) = Σ_f Σ_{o,i} R F*(r) is still a sum of many independent terms, circular complex Gaussian, with
+
+    ⟨|N(r)|²⟩ ∝ P(r) = Σ_{o,i} Σ_t E_R(o, i, t) E_F(o, i, t − δτ_oi(r)),                      (B1)
+
+E_R = |r(o, i, t)|² and E_F = |f(o, i, t)|² the energy envelopes of the data and of the fingerprint at
+r0 (analytic signals in the plane-wave basis), δτ_oi(r) = [(s_o + s_i)·Δρ + (c_o + c_i)Δz]/c0 the
+virtual shift's delay (paper eq. BF). P(r) is the energy of R *inside F(r)'s own time support*,
+weighted by F's energy: Cauchy–Schwarz applied locally. In the frequency domain the cross-correlation
+over t is a product of envelope spectra, so
+
+    P(r) = Re Σ_ν Σ_{o,i} w_ν Ê_R(ν, o, i) Ê_F*(ν, o, i) e^{iK_ν·(r − r0)},  K_ν = 2πν/c0 (s_o + s_i, c_o + c_i),
+
+ν ≥ 0 the envelope frequencies (w_0 = 1, w_ν>0 = 2): the same beamforming sum as γ's numerator
+(docs/design.md §5) at baseband, one type-1 NUFFT per map. The null level of γ² is then
+γ_M²(r) = κ P(r)/(‖R‖² ‖F‖²), with one constant κ per map (it absorbs the correlation of neighbouring
+plane-wave and time samples) estimated robustly from the map itself, so that T = γ²/γ_M² is Exp(1) under
+the null at every depth and lateral position — no depth window to choose.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+
+import numpy as np
+from scipy.ndimage import uniform_filter
+
+from .acquisition import Acquisition, PlaneWaveData, Spectrum, to_plane_waves
+from .fingerprint import Fingerprint
+from .geometry import from_xyz
+from .grid import Grid
+from .kernel import GridTransform, wavevectors
+from .likelihood import Imager
+
+__all__ = ["envelope_spectrum", "NullPower", "NullLevel"]
+
+
+def envelope_spectrum(data: np.ndarray) -> np.ndarray:
+    """Ê(ν, o, i) for ν = m δf, m = 0 … N_f − 1: the spectrum of |a(t)|², a the band's analytic signal.
+
+    data: (N_f, N_o, N_i) on uniformly spaced frequencies (the time axis is periodic, 1/δf, like γ's).
+    The band is moved to baseband first (|a|² does not change); |a|² has bandwidth 2(N_f − 1)δf, so a
+    time axis of 2 N_f samples holds it without aliasing.
+    """
+    n_f = data.shape[0]
+    n_t = 2 * n_f
+    a = np.fft.ifft(data, n=n_t, axis=0)
+    e = (a.real ** 2 + a.imag ** 2) * n_t  # scale: Σ_t |a|² = Σ_f |R_f|² (Parseval)
+    return np.fft.fft(e, axis=0)[:n_f]
+
+
+class NullPower:
+    """P(r) of eq. (B1) on a grid, with envelope kernels cached per geometry (small LRU)."""
+
+    def __init__(self, grid: Grid, eps: float = 1e-4, cache: int = 4) -> None:
+        self.grid = grid
+        self.eps = eps
+        self._kernels: OrderedDict[tuple, GridTransform] = OrderedDict()
+        self._cache = cache
+
+    def _kernel(self, pw: PlaneWaveData) -> tuple[GridTransform, np.ndarray]:
+        freqs = np.asarray(pw.freqs, float)
+        if freqs.size > 1 and not np.allclose(np.diff(freqs), freqs[1] - freqs[0], rtol=1e-6):
+            raise ValueError("freqs: the null level needs uniformly spaced frequencies")
+        df = float(freqs[1] - freqs[0]) if freqs.size > 1 else 1.0
+        nu = df * np.arange(freqs.size)
+        key = (freqs.size, df, pw.out_sines.tobytes(), pw.in_sines.tobytes(), float(pw.c0))
+        kern = self._kernels.get(key)
+        if kern is None:
+            K = wavevectors(nu, pw.out_sines, pw.in_sines, pw.c0, self.grid.ndim)
+            kern = GridTransform(K, self.grid, eps=self.eps)
+            self._kernels[key] = kern
+            while len(self._kernels) > self._cache:
+                self._kernels.popitem(last=False)
+        else:
+            self._kernels.move_to_end(key)
+        return kern, nu
+
+    def power(self, pw: PlaneWaveData, fp: Fingerprint) -> np.ndarray:
+        """P(r) ≥ 0 on the grid (eq. B1), float64."""
+        kern, nu = self._kernel(pw)
+        w = envelope_spectrum(np.asarray(pw.data)) * np.conj(envelope_spectrum(np.asarray(fp.data)))
+        w[1:] *= 2.0
+        K = wavevectors(nu, pw.out_sines, pw.in_sines, pw.c0, self.grid.ndim)
+        w = w.ravel() * np.exp(-1j * (K @ from_xyz(fp.r0, self.grid.ndim)))
+        p = kern(w).real.astype(np.float64)
+        return np.maximum(p, 0.0)
+
+    def gamma_level(self, pw: PlaneWaveData, fp: Fingerprint) -> np.ndarray:
+        """P(r)/(‖R‖² ‖F‖²): the null level of γ² up to the per-map constant κ (module doc)."""
+        r2 = float(np.vdot(pw.data, pw.data).real)
+        return self.power(pw, fp) / max(r2 * fp.norm2, 1e-300)
+
+
+class NullLevel:
+    """γ²'s null level up to a constant, from physics: the data's energy inside the fingerprint's own time
+    support (eq. B1, per frame) times the fingerprint's aperture factor A(r) (per fingerprint and
+    geometry, cached), and the region where the fingerprint can be tested at all.
+
+    Why A(r). The output plane waves are sampled finer than the array's own Nyquist step so that the
+    receive focus does not alias inside the field of view (docs/design.md §4.2); neighbouring output
+    directions then carry correlated data, and the share of a shifted fingerprint's energy that the
+    physical aperture can receive falls as the fingerprint is moved away from it. Eq. (B1) treats the
+    plane-wave coefficients as independent and misses that lateral factor; A(r) = E|N(r)|² for
+    independent, identically distributed element data (the paper's S6 null in the element basis) supplies
+    it — estimated by passing `n_noise` white-noise frames through the same projection and kernel,
+    smoothed over one resolution cell, normalised to a maximum of 1. Where A(r) < `min_aperture` the
+    fingerprint, moved there, misses the array almost entirely: γ cannot test the hypothesis and the
+    node is not searched (`visible`).
+    """
+
+    def __init__(self, imager: Imager, n_noise: int = 24, min_aperture: float = 0.1, seed: int = 0,
+                 cache: int = 8) -> None:
+        self.imager = imager
+        self.power = NullPower(imager.grid, eps=max(imager.config.eps, 1e-4))
+        self.n_noise = n_noise
+        self.min_aperture = min_aperture
+        self.seed = seed
+        self._apertures: OrderedDict[tuple, np.ndarray] = OrderedDict()
+        self._cache = cache
+
+    def aperture(self, acq: Acquisition, pw: PlaneWaveData, fp: Fingerprint,
+                 resolution: tuple[float, float]) -> np.ndarray:
+        """A(r) in [0, 1] (class doc) for the geometry of `acq` and `pw`, cached per fingerprint and geometry."""
+        probe, seq = acq.probe, acq.sequence
+        shape = (pw.freqs.size, probe.n_elements, seq.n_waves)
+        key = (getattr(fp, "token", id(fp)), shape, pw.freqs.tobytes(), pw.out_sines.tobytes(),
+               probe.positions.tobytes(), seq.sines.tobytes(), float(pw.c0))
+        a = self._apertures.get(key)
+        if a is not None:
+            self._apertures.move_to_end(key)
+            return a
+        rng = np.random.default_rng(self.seed)
+        acc = np.zeros(self.imager.grid.shape)
+        for _ in range(self.n_noise):
+            noise = rng.standard_normal(shape, dtype=np.float32) + 1j * rng.standard_normal(shape, dtype=np.float32)
+            pn = to_plane_waves(Spectrum(noise, pw.freqs, pw.c0, probe, seq), pw.out_sines)
+            r2 = float(np.vdot(pn.data, pn.data).real)
+            acc += self.imager.gamma(pn, fp).astype(np.float64) ** 2 * r2
+        grid = self.imager.grid
+        cells = [resolution[0]] * (grid.ndim - 1) + [resolution[1]]
+        size = [max(1, int(round(c / s))) | 1 for c, s in zip(cells, grid.spacing, strict=True)]
+        a = uniform_filter(acc, size, mode="nearest")
+        a = (a / max(float(a.max()), 1e-300)).astype(np.float32)
+        self._apertures[key] = a
+        while len(self._apertures) > self._cache:
+            self._apertures.popitem(last=False)
+        return a
+
+    def level(self, acq: Acquisition, pw: PlaneWaveData, fp: Fingerprint,
+              resolution: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+        """(level, visible): γ²'s null level up to a constant, and the nodes where the fingerprint can be
+        tested (A ≥ `min_aperture`)."""
+        a = self.aperture(acq, pw, fp, resolution)
+        lev = self.power.gamma_level(pw, fp) * a
+        return lev, a >= self.min_aperture

@@ -1,0 +1,266 @@
+"""A calibrated false-alarm probability for γ-maps: local background, measured smoothness, random-field
+tail (docs/design.md §4.9).
+
+Why not the paper's formula as printed. Under the null hypothesis (paper Supplementary S6: the
+reflection-matrix coefficients are i.i.d.) the numerator of γ is a linear form of R, hence circular
+complex Gaussian, so γ is Rayleigh: P(γ > g) = exp(−g²/γ_M²), γ_M² = ⟨γ²⟩. The paper's S6 writes
+C = (γ_max/γ_M)² inside exp(−π C²/4): a notational slip — its own figure (C ≈ 6, L = 25³ → 1e−8) is the
+amplitude ratio; the exponent that follows from its Rayleigh law is (γ/γ_M)². Two further facts make
+any single global formula dishonest on real maps (measured on the simulator's fog, docs/design.md §4.9):
+
+* the background is not stationary: γ's level rises under strong interfaces and falls with depth, so
+  the scale γ_M must be estimated *locally*;
+* the pixels are not independent: a γ-map is a smooth random field whose grains are the resolution
+  cell, so "L independent cells" is not a count of pixels, nor a formula of the resolution alone.
+
+What this module does (cell-averaging CFAR in the radar sense, Rohling 1983, with random-field theory
+for the maximum, Worsley et al. 1996):
+
+1. **Local scale** (`NullModel.power`): the mean of γ² over a depth band of half-width `window` around
+   each depth, over all lateral nodes, censoring nodes that stand out (T > `censor` against a robust
+   median first pass) together with a guard region of one resolution cell around them — a censored
+   cell-averaging CFAR whose training cells are the lateral neighbours at the same depth.
+2. **Statistic**: T(r) = γ²(r)/γ_M²(z), exponentially distributed (χ²₂/2) under the null. The scale is
+   estimated from `n_train` independent training cells, so the per-node tail is the CA-CFAR law
+   P(T > t) = (1 + t/n)^(−n) (→ e^{−t} for large n); we carry that into the field tail by the
+   effective threshold t_eff = n ln(1 + t/n).
+3. **Smoothness** (`NullModel.fwhm`): the roughness of the underlying Gaussian field per axis from the
+   lag-one autocorrelation ρ₁ of T (ρ_T = |μ|², so for a Gaussian-shaped correlation λ = −ln ρ₁/h²),
+   as FWHM = √(4 ln 2/λ) — measured on the map itself, not taken from a formula.
+4. **Maximum**: the probability that the maximum of the null field over a region exceeds t is the
+   expected Euler characteristic of the excursion set (Worsley's χ² field with ν = 2 degrees of
+   freedom), E[EC] = Σ_d R_d ρ_d(2 t_eff), with R_d the resel counts of the region (its intrinsic
+   volumes in FWHM units); PFA = 1 − exp(−E[EC]). For a box of N independent-looking resels this is
+   ≈ N e^{−t} times a factor t^{D/2} that the "L independent cells" model misses — which is why that
+   model, even with the right exponent, under-reports false alarms in the tail.
+
+The calibration of this PFA is checked on target-free maps (i.i.d. noise, and the simulator's 2-D and
+3-D fog) in `tests/test_metrics.py` and `bench/validate_pfa.py`: the fraction of maps whose maximum
+reports PFA < α stays ≤ α.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from math import gamma as gamma_fn
+from math import log, pi
+
+import numpy as np
+from scipy.ndimage import binary_dilation, uniform_filter, uniform_filter1d
+from scipy.special import digamma, gammaln, kve
+
+from .grid import Grid
+
+__all__ = ["NullModel", "null_model", "ec_density", "max_tail", "resels_box", "resels_ellipsoid"]
+
+_FOUR_LN2 = 4 * log(2)
+
+
+def ec_density(u: float, d: int, nu: int = 2) -> float:
+    """ρ_d(u): Euler-characteristic density of a χ² field with ν degrees of freedom at level u, in
+    resel units (Worsley 1994, Table 2; d = 0…3)."""
+    if u <= 0:
+        return 1.0 if d == 0 else 0.0
+    from scipy.stats import chi2
+
+    if d == 0:
+        return float(chi2.sf(u, nu))
+    base = u ** ((nu - d) / 2) * np.exp(-u / 2) / (2 ** ((nu - 2) / 2) * gamma_fn(nu / 2))
+    c = (_FOUR_LN2 / (2 * pi)) ** (d / 2)
+    if d == 1:
+        poly = 1.0
+    elif d == 2:
+        poly = u - (nu - 1)
+    elif d == 3:
+        poly = u ** 2 - (2 * nu - 1) * u + (nu - 1) * (nu - 2)
+    else:
+        raise ValueError(f"d: expected 0…3, got {d}")
+    return float(c * base * poly)
+
+
+def resels_box(sides: np.ndarray) -> np.ndarray:
+    """Resel counts (R_0, …, R_D) of a box whose sides are given in FWHM units (intrinsic volumes)."""
+    a = np.asarray(sides, float)
+    if a.size == 1:
+        return np.array([1.0, a[0]])
+    if a.size == 2:
+        return np.array([1.0, a.sum(), a.prod()])
+    return np.array([1.0, a.sum(), a[0] * a[1] + a[1] * a[2] + a[0] * a[2], a.prod()])
+
+
+def resels_ellipsoid(semi_axes: np.ndarray) -> np.ndarray:
+    """Resel counts of an ellipsoid (semi-axes in FWHM units), through the ball of equal volume."""
+    a = np.asarray(semi_axes, float)
+    r = float(np.prod(a) ** (1 / a.size))
+    if a.size == 2:
+        return np.array([1.0, pi * r, pi * r ** 2])
+    return np.array([1.0, 4 * r, 2 * pi * r ** 2, 4 / 3 * pi * r ** 3])
+
+
+def max_tail(t: float, resels: np.ndarray, n_train: float = np.inf) -> float:
+    """P(max of the null field over a region with these resel counts > t), t on the T = γ²/γ_M² scale.
+
+    E[EC] of the excursion set at u = 2 t_eff (ν = 2), t_eff = n ln(1 + t/n) for a scale estimated from
+    n independent training cells; PFA = 1 − exp(−E[EC]), and 1 where E[EC] ≤ 0 (low thresholds, where
+    the expansion fails and the maximum exceeds t almost surely).
+    """
+    if not np.isfinite(t):
+        return 0.0 if t > 0 else 1.0
+    t_eff = n_train * np.log1p(t / n_train) if np.isfinite(n_train) else float(t)
+    u = 2 * t_eff
+    ec = sum(float(r) * ec_density(u, d) for d, r in enumerate(resels))
+    if ec <= 0:
+        return 1.0
+    return float(-np.expm1(-ec))
+
+
+@dataclass
+class NullModel:
+    """The local null model of one γ-map (see the module doc).
+
+    power: γ_M²(r), the local mean of γ² under the null, on the grid;
+    fwhm: FWHM of the underlying Gaussian field per grid axis, in nodes; n_train: independent cells
+    behind each scale estimate; statistic: T = γ²/γ_M² on the grid.
+    """
+
+    grid: Grid
+    power: np.ndarray
+    fwhm: np.ndarray
+    n_train: float
+    statistic: np.ndarray
+    shape: np.ndarray  # K-distribution shape ν per node (inf: Rayleigh speckle)
+    visible: np.ndarray  # nodes searched (and counted as cells)
+
+    _significance: np.ndarray | None = None
+
+    @property
+    def significance(self) -> np.ndarray:
+        """S(r) = −ln P(T > T(r)) under the local law: the statistic on the exponential scale (equal to T
+        where the background is Rayleigh speckle); detections are the maxima of S."""
+        if self._significance is None:
+            self._significance = (-np.log(np.maximum(k_tail(self.statistic, self.shape), 1e-300))).astype(np.float32)
+        return self._significance
+
+    def resels(self, mask: np.ndarray | None = None) -> np.ndarray:
+        """Resel counts of the nodes in `mask` (default: the visible ones), through their volume and the
+        grid box's shape: R_D scaled by the fraction of nodes, lower orders by its power d/D."""
+        mask = self.visible if mask is None else mask
+        shape = np.array(self.grid.shape, float)
+        keep = shape > 1
+        sides = shape[keep] / self.fwhm[keep]
+        r = resels_box(sides)
+        frac = float(np.count_nonzero(mask)) / mask.size
+        dim = len(r) - 1
+        return np.array([1.0] + [r[d] * frac ** (d / dim) for d in range(1, dim + 1)])
+
+    def pfa(self, value: float, mask: np.ndarray | None = None, resels: np.ndarray | None = None) -> float:
+        """Calibrated false-alarm probability of a maximum T = `value` found over `mask` (whole grid)."""
+        return max_tail(value, self.resels(mask) if resels is None else resels, self.n_train)
+
+    def gate_pfa(self, value: float, radius_nodes: np.ndarray) -> float:
+        """PFA of a maximum T = `value` found in an ellipsoidal gate with these semi-axes (nodes)."""
+        keep = np.array(self.grid.shape) > 1
+        semi = np.asarray(radius_nodes, float)[keep] / self.fwhm[keep]
+        return max_tail(value, resels_ellipsoid(np.maximum(semi, 1e-6)), self.n_train)
+
+
+def _lag1_fwhm(t: np.ndarray, valid: np.ndarray, axis: int) -> float:
+    """FWHM (nodes) along `axis` from the lag-one autocorrelation of T over valid pairs."""
+    if t.shape[axis] < 3:
+        return 1.0
+    a = np.moveaxis(t, axis, -1)
+    v = np.moveaxis(valid, axis, -1)
+    pair = v[..., 1:] & v[..., :-1]
+    if pair.sum() < 16:
+        return 1.0
+    x, y = a[..., :-1][pair], a[..., 1:][pair]
+    x = x - x.mean()
+    y = y - y.mean()
+    rho = float((x * y).mean() / max(np.sqrt((x * x).mean() * (y * y).mean()), 1e-30))
+    rho = min(max(rho, 1e-6), 1 - 1e-9)
+    lam = -np.log(rho)  # per node²
+    return float(np.sqrt(_FOUR_LN2 / lam))
+
+
+def k_tail(t: np.ndarray | float, nu: np.ndarray | float) -> np.ndarray:
+    """P(T > t) for a unit-mean K-distributed intensity of shape ν (Jakeman & Pusey 1976):
+    2/Γ(ν) (ν t)^{ν/2} K_ν(2√(ν t)); ν → ∞ is the exponential law e^{−t} of Rayleigh speckle."""
+    t = np.maximum(np.asarray(t, float), 0.0)
+    nu = np.broadcast_to(np.asarray(nu, float), t.shape)
+    out = np.exp(-t)
+    fin = np.isfinite(nu) & (nu < 200) & (t > 0)
+    if fin.any():
+        n, tt = nu[fin], t[fin]
+        x = 2 * np.sqrt(n * tt)
+        log_p = np.log(2) - gammaln(n) + 0.5 * n * np.log(n * tt) + np.log(kve(n, x)) - x
+        out = out.copy()
+        out[fin] = np.exp(np.minimum(log_p, 0.0))
+    return out
+
+
+def k_shape(log_moment: np.ndarray) -> np.ndarray:
+    """ν of a K-distribution from Δ = ⟨ln T⟩ − ln⟨T⟩ = ψ(ν) − ln ν − γ_E (the log-moment estimator);
+    Δ ≥ −γ_E − 1e-3 (as light-tailed as Rayleigh or lighter) gives ν = ∞."""
+    target = np.asarray(log_moment, float) + np.euler_gamma
+    grid_nu = np.logspace(-1, 2.3, 400)
+    f = digamma(grid_nu) - np.log(grid_nu)
+    nu = np.interp(target, f, grid_nu, left=grid_nu[0], right=np.inf)
+    return np.where(target >= f[-1], np.inf, nu)
+
+
+def null_model(gamma: np.ndarray, grid: Grid, resolution: tuple[float, float], level: np.ndarray | None = None,
+               visible: np.ndarray | None = None, window_cells: tuple[float, float] = (6.0, 3.0),
+               censor: float = 8.0, heavy_tails: bool = True) -> NullModel:
+    """Estimate the local null model of a γ-map (module doc, steps 1–3).
+
+    resolution: (lateral, axial) resolution cell in metres (δρ_D, c0/(2Δf)): the unit of the training
+    window (± `window_cells` cells laterally and in depth) and of the guard region around censored nodes.
+    level: a physical null level of γ² known up to a constant (fpcore.background: the data's energy in
+    the fingerprint's own time support times the aperture factor); the CFAR then only corrects what it
+    leaves (default: none, γ² itself). visible: nodes where the fingerprint can be tested (the others
+    neither train nor count as cells).
+    """
+    g2 = np.asarray(gamma, np.float64) ** 2
+    if level is not None:
+        g2 = g2 / np.maximum(np.asarray(level, np.float64), 1e-300)
+    nd = g2.ndim
+    vis = np.ones(g2.shape, bool) if visible is None else np.asarray(visible, bool)
+    lat_res, ax_res = resolution
+    cells = [lat_res] * (nd - 1) + [ax_res]
+    half = [max(int(round(w * c / s)), 2) for w, c, s in
+            zip([window_cells[0]] * (nd - 1) + [window_cells[1]], cells, grid.spacing, strict=True)]
+    sizes = [min(2 * h + 1, n) for h, n in zip(half, g2.shape, strict=True)]
+
+    def local_mean(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        s = uniform_filter(values * weights, sizes, mode="constant")
+        n = uniform_filter(weights, sizes, mode="constant")
+        return np.where(n > 1e-6, s / np.maximum(n, 1e-30), np.nan)
+
+    # Robust first pass: the local median of γ² over visible nodes (exponential: median = ln 2 × mean),
+    # through per-depth medians smoothed over the depth window.
+    nz = g2.shape[-1]
+    flat = np.where(vis, g2, np.nan).reshape(-1, nz)
+    med = np.nanmedian(np.where(np.isnan(flat).all(axis=0, keepdims=True), 1.0, flat), axis=0) / np.log(2)
+    med = uniform_filter1d(med, sizes[-1], mode="nearest")
+    t0 = g2 / np.maximum(med, 1e-300)
+    bright = (t0 > censor) & vis
+    if bright.any():
+        radius = [max(1, int(np.ceil(c / s))) for c, s in zip(cells, grid.spacing, strict=True)]
+        bright = binary_dilation(bright, structure=np.ones([2 * r + 1 for r in radius], bool))
+    train = (vis & ~bright).astype(np.float64)
+    power = local_mean(g2, train)
+    power = np.where(np.isfinite(power), power, np.broadcast_to(med, g2.shape))
+    stat = g2 / np.maximum(power, 1e-300)
+    nu = np.full(g2.shape, np.inf)
+    if heavy_tails:
+        n = local_mean(np.ones_like(stat), train)  # support of the window (NaN where none trains)
+        m1 = local_mean(stat, train)
+        ml = local_mean(np.log(np.maximum(stat, 1e-12)), train)
+        ok = np.isfinite(n) & np.isfinite(m1) & np.isfinite(ml)
+        nu = np.where(ok, k_shape(np.where(ok, ml - np.log(np.maximum(m1, 1e-30)), 0.0)), np.inf)
+    fwhm = np.array([_lag1_fwhm(stat, train > 0, ax) for ax in range(nd)])
+    window_resels = float(np.prod([n / f for n, f in zip(sizes, fwhm, strict=True)]))
+    n_train = max(window_resels * float(train[vis].mean()) if vis.any() else 2.0, 2.0)
+    level_out = power if level is None else power * np.asarray(level, np.float64)
+    return NullModel(grid, np.ascontiguousarray(level_out, dtype=np.float32), fwhm, n_train,
+                     stat.astype(np.float32), nu, vis)
