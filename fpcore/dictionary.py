@@ -142,12 +142,12 @@ class Dictionary:
         all_maps = np.empty((len(self),) + grid.shape, np.float32) if keep_all else None
         if method not in ("auto", "fft", "exact"):
             raise ValueError(f"method: expected 'auto', 'fft' or 'exact', got {method!r}")
-        use_fft = self.family is not None and method in ("auto", "fft")
+        family = self.family if method in ("auto", "fft") else None  # the FFT path: model families only
         maps: Iterator[tuple[int, np.ndarray]]
-        if use_fft:
+        if family is not None:
             key = imager.cache_key(pw)  # content, not id(imager): an id can be reused by a new imager
             if key not in self._correlators:
-                self._correlators = {key: _FFTCorrelator.build(pw, grid, imager.config.eps, self.family)}
+                self._correlators = {key: _FFTCorrelator.build(pw, grid, imager.config.eps, family)}
             corr = self._correlators[key]
             if corr is None and method == "fft":
                 raise ValueError("grid: too coarse for the FFT correlation (spectrum fills the grid's band)")
@@ -172,6 +172,7 @@ class Dictionary:
         K = wavevectors(pw.freqs, pw.out_sines, pw.in_sines, pw.c0, grid.ndim)
         K3 = to_xyz(K, grid.ndim)  # (K_x, K_z) → (K_x, 0, K_z) in 2D
         n = len(self)
+        fps = self.fingerprints or []  # explicit fingerprints, when there is no family
         kern = GridTransform(K, grid, eps=imager.config.eps, n_trans=batch)
         for a in range(0, n, batch):
             idx = list(range(a, min(a + batch, n)))
@@ -181,7 +182,7 @@ class Dictionary:
                     f = self.family.response(K3, self.family.states[q]).astype(np.complex64)
                     t = np.conj(f)
                 else:
-                    fp = self.fingerprints[q]
+                    fp = fps[q]
                     t = fp.centred_conj(grid.ndim)
                     f = fp.data.ravel()
                 norm = float(np.sqrt(np.vdot(f, f).real))

@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .acquisition import Acquisition, PlaneWaveData, Probe, Spectrum, to_plane_waves
 from .geometry import cosines, from_xyz, mirror_direction
@@ -263,7 +264,7 @@ def from_calibration(acq: Acquisition, r0: np.ndarray, out_sines: np.ndarray, ba
 
 
 def point_fingerprint(freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, c0: float,
-                      r0: np.ndarray = (0.0, 0.0, 0.0), name: str = "point") -> Fingerprint:
+                      r0: ArrayLike = (0.0, 0.0, 0.0), name: str = "point") -> Fingerprint:
     """Point reflector at r0: F = e^{-iK·r0} (Γ = δ(r − r0); paper, Methods "Numerical computation")."""
     r0 = np.asarray(r0, dtype=float)
     K3 = wavevectors(freqs, out_sines, in_sines, c0, 3)
@@ -289,7 +290,7 @@ def sinc_segment(kt: np.ndarray, length: float) -> np.ndarray:
 
 
 def mirror_fingerprint(freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, c0: float,
-                       length: float, alpha: float, r0: np.ndarray = (0.0, 0.0, 0.0), azimuth: float = 0.0,
+                       length: float, alpha: float, r0: ArrayLike = (0.0, 0.0, 0.0), azimuth: float = 0.0,
                        name: str = "mirror") -> Fingerprint:
     """Straight mirror (uniform reflectivity segment) of length L, orientation α, centred at r0.
 

@@ -37,10 +37,12 @@ A transform holds its buffers: call one instance from one thread at a time.
 
 from __future__ import annotations
 
+import importlib
 import math
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from types import ModuleType
 
 import numpy as np
 
@@ -48,8 +50,9 @@ from .geometry import cosines
 from .grid import Grid
 from .kernel import default_threads
 
+nb: ModuleType | None
 try:  # numba compiles the spreading loops; without it PresumTransform is unavailable
-    import numba as nb
+    nb = importlib.import_module("numba")
 except ImportError:  # pragma: no cover - depends on the environment
     nb = None
 
@@ -540,8 +543,13 @@ class PresumTransform:
         cost_nufft = (6 * 2 * rows * mx * my * _TAPS ** nl
                       + 4 * nglob * nf_lat[0] * (qy * nf_lat[1] + qx * ny))
         self.cost = {"exact": cost_exact, "nufft": cost_nufft}
-        self.lateral = min(self.cost, key=self.cost.get) if lateral == "auto" else lateral
+        self.lateral = min(self.cost, key=lambda k: self.cost[k]) if lateral == "auto" else lateral
         nt = self.nthreads
+        self._Cx: np.ndarray  # cos/sin tables of the lateral synthesis (x, y), per branch below
+        self._Sx: np.ndarray
+        self._Cy: np.ndarray
+        self._Sy: np.ndarray
+        self._T: np.ndarray  # work buffer: one row per thread (exact lateral) or one flat buffer (NUFFT)
         if self.lateral == "exact":
             self._Cx, self._Sx = _cos_sin(theta[0], nx)
             self._Cy, self._Sy = _cos_sin(theta[1], ny)

@@ -132,7 +132,8 @@ class _Record:
                 extra[k] = v
             else:
                 known[k] = parsed
-        return cls(**known, extra=extra)
+        make: Callable[..., _R] = cls  # a dataclass: fields as keywords
+        return make(**known, extra=extra)
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON object: fields in declaration order (None: absent), then ``extra``."""

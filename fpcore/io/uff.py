@@ -668,7 +668,9 @@ def read_uff(
                 rf = _align(rf, shifts)
             rfs.append((i, rf))
 
-        mprobe = meta.get("probe") if isinstance(meta.get("probe"), dict) else {}
+        mprobe = meta.get("probe")
+        if not isinstance(mprobe, dict):
+            mprobe = {}
         fc, bw = mprobe.get("centre_frequency"), mprobe.get("bandwidth")
         if not (fc and bw) and "pulse" in cd and isinstance(cd["pulse"], h5py.Group):
             pulse = cd["pulse"]

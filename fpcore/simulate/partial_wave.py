@@ -23,7 +23,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 import scipy.special as sp
@@ -45,7 +45,7 @@ _F = TypeVar("_F", bound=Callable[..., np.ndarray])
 def _quiet(fn: _F) -> _F:
     """Silence over/underflow of high-order Bessel functions at small arguments (masked out anyway)."""
     @functools.wraps(fn)
-    def wrapper(*args, **kwargs):  # type: ignore[no-untyped-def]
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
         with np.errstate(all="ignore"):
             return fn(*args, **kwargs)
     return wrapper  # type: ignore[return-value]

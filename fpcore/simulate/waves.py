@@ -226,10 +226,13 @@ def radiate_points(points: np.ndarray, strength: np.ndarray, elements: np.ndarra
         if att_out is not None:
             amp_out = amp_out * att_out[:, sl]
         phin = _path_in(sines, p)
-        amp_in = None if per_f else np.asarray(strength[sl], dtype=np.complex128)[:, None]
+        amp_in: np.ndarray | None = None if per_f else np.asarray(strength[sl], dtype=np.complex128)[:, None]
         if att_in is not None:
             amp_in = (1.0 if amp_in is None else amp_in) * att_in[sl]
-        e_out = e_in = step_out = step_in = None
+        e_out: np.ndarray  # set at m = 0 (and every 32 frequencies, or each one when they are not uniform)
+        e_in: np.ndarray
+        step_out: np.ndarray  # set when the frequencies are uniform (dk), the only case they are used
+        step_in: np.ndarray
         for m in range(n_f):
             if dk is None or m % 32 == 0:
                 e_out = (amp_out * np.exp(-1j * k[m] * d)).astype(np.complex64)
