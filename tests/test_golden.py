@@ -9,8 +9,8 @@ is the same kernel with F ≡ 1 (§4.3). Both are compared in dB re their own ma
 stay within 0.5 dB, each peak must sit on the same node and keep its level within 0.5 dB.
 
 Round-off passes: the pre-sum and the finufft kernels give maps within 0.02 dB of each other. Physics
-changes fail: moving the calibration position r0 by 50 µm (λ/14) puts γ 15 dB off at a speckle null;
-imaging 1.80–2.55 MHz instead of 1.80–2.60 MHz puts both maps more than 20 dB off.
+changes fail: moving the calibration position r0 by 50 µm (λ/14) puts γ 18 dB off at a speckle null and
+moves its peak; imaging 1.80–2.55 MHz instead of 1.80–2.60 MHz puts both maps more than 18 dB off.
 """
 
 from __future__ import annotations
