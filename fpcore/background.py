@@ -64,11 +64,22 @@ class NullPower:
         self._kernels: OrderedDict[tuple, GridTransform] = OrderedDict()
         self._cache = cache
 
+    @staticmethod
+    def uniform(freqs: np.ndarray) -> bool:
+        """Eq. (B1) by envelope spectra needs (nearly) uniformly spaced frequencies: a periodic delay axis.
+        A band decimated to n_freq bins (fpcore Spectrum: bins rounded from a linspace) qualifies; its mean
+        step is used — the level is a smooth energy envelope, a fraction of a bin does not move it."""
+        f = np.asarray(freqs, float)
+        if f.size < 3:
+            return True
+        d = np.diff(f)
+        return bool(d.min() > 0 and d.std() <= 0.25 * d.mean())
+
     def _kernel(self, pw: PlaneWaveData) -> tuple[GridTransform, np.ndarray]:
         freqs = np.asarray(pw.freqs, float)
-        if freqs.size > 1 and not np.allclose(np.diff(freqs), freqs[1] - freqs[0], rtol=1e-6):
+        if not self.uniform(freqs):
             raise ValueError("freqs: the null level needs uniformly spaced frequencies")
-        df = float(freqs[1] - freqs[0]) if freqs.size > 1 else 1.0
+        df = float((freqs[-1] - freqs[0]) / (freqs.size - 1)) if freqs.size > 1 else 1.0
         nu = df * np.arange(freqs.size)
         key = (freqs.size, df, pw.out_sines.tobytes(), pw.in_sines.tobytes(), float(pw.c0))
         kern = self._kernels.get(key)
@@ -158,5 +169,8 @@ class NullLevel:
         """(level, visible): γ²'s null level up to a constant, and the nodes where the fingerprint can be
         tested (A ≥ `min_aperture`)."""
         a = self.aperture(acq, pw, fp, resolution)
-        lev = self.power.gamma_level(pw, fp) * a
+        if self.power.uniform(pw.freqs):
+            lev = self.power.gamma_level(pw, fp) * a
+        else:  # decimated band (n_freq): no periodic envelope spectrum; the CFAR takes the depth trend alone
+            lev = a.astype(np.float64)
         return lev, a >= self.min_aperture

@@ -208,18 +208,15 @@ def angular_mask(sines: np.ndarray, r: np.ndarray, probe: Probe, margin: float =
     return ok
 
 
-def effective_duration(acq: Acquisition, r0: np.ndarray, diameter: float) -> float:
-    """Δt of the target echo: participation-ratio width of its energy envelope after aligning every
-    channel on the front-face ballistic delay (paper: N_T ∼ Δf Δt, main text after eq. G)."""
-    r0 = np.asarray(r0, dtype=float)
-    front = np.array([r0[0], r0[1], r0[2] - diameter / 2])
-    tau_out = np.linalg.norm(acq.probe.positions - front[None, :], axis=1) / acq.c0
+def _aligned_energy(acq: Acquisition, point: np.ndarray) -> np.ndarray:
+    """Σ over channels of the RF energy against time after the ballistic delay of `point` (τ_in + τ_out),
+    on a buffer of 4 n_t samples whose index 2 n_t is that delay."""
+    point = np.asarray(point, dtype=float)
+    tau_out = np.linalg.norm(acq.probe.positions - point[None, :], axis=1) / acq.c0
     s = acq.sequence.sines
-    c = np.sqrt(1 - s[:, 0] ** 2 - s[:, 1] ** 2)
-    tau_in = (front[0] * s[:, 0] + front[1] * s[:, 1] + front[2] * c) / acq.c0
+    tau_in = (point[0] * s[:, 0] + point[1] * s[:, 1] + point[2] * cosines(s)) / acq.c0
     shift = np.rint((tau_out[:, None] + tau_in[None, :] - acq.t0) * acq.fs).astype(int)
     n_t = acq.n_samples
-    # Aligned time index n - shift, stored at offset 2 n_t in a buffer of 4 n_t samples.
     start = np.clip(2 * n_t - shift, 0, 3 * n_t).ravel()
     rf = acq.rf.reshape(-1, n_t)
     energy = np.zeros(4 * n_t)
@@ -227,24 +224,59 @@ def effective_duration(acq: Acquisition, r0: np.ndarray, diameter: float) -> flo
         e = rf[a:a + 2048].astype(np.float64) ** 2
         cols = start[a:a + 2048, None] + np.arange(n_t)[None, :]
         energy += np.bincount(cols.ravel(), weights=e.ravel(), minlength=4 * n_t)
+    return energy
+
+
+def effective_duration(acq: Acquisition, r0: np.ndarray, diameter: float) -> float:
+    """Δt of the target echo: participation-ratio width of its energy envelope after aligning every
+    channel on the front-face ballistic delay (paper: N_T ∼ Δf Δt, main text after eq. G)."""
+    r0 = np.asarray(r0, dtype=float)
+    energy = _aligned_energy(acq, np.array([r0[0], r0[1], r0[2] - diameter / 2]))
     total = energy.sum()
     if total <= 0:
         return 0.0
     return float(total ** 2 / (energy ** 2).sum() / acq.fs)
 
 
+def first_arrival_diameter(acq: Acquisition, r0: np.ndarray, threshold_db: float = -20.0) -> float:
+    """The diameter d that puts the time gate's front face r0 − d/2 at the echo's measured first arrival.
+
+    A calibration is the target alone in water, so the first echo in the record is the target's nearest
+    part: every channel aligned on r0's delay, energies summed and smoothed over one carrier period, the
+    first echo is the peak of that profile within one pulse length (1/Δf) of its first rise above
+    `threshold_db` of the global peak (its arrival time t_first: the pulse's centre, as for the
+    ballistic delays). At normal incidence a front face d/2
+    before r0 arrives d/c0 earlier (two ways), so d = −c0 t_first (≥ 0). Used when the diameter is
+    unknown instead of d = 0, which cuts away everything of the target before its centre.
+    """
+    energy = _aligned_energy(acq, r0)
+    if energy.max() <= 0:
+        return 0.0
+    width = max(int(round(acq.fs / max(acq.probe.centre_frequency, 1.0))), 1)
+    smooth = np.convolve(energy, np.ones(width) / width, mode="same")
+    i = int(np.nonzero(smooth >= smooth.max() * 10 ** (threshold_db / 10))[0][0])
+    pulse = max(int(round(acq.fs / max(acq.probe.bandwidth, 1.0))), 1)  # one pulse length, 1/Δf
+    i += int(np.argmax(smooth[i:i + pulse]))  # the first echo's peak, within one pulse of its rise
+    t_first = (i - 2 * acq.n_samples) / acq.fs
+    return float(max(-acq.c0 * t_first, 0.0))
+
+
 def from_calibration(acq: Acquisition, r0: np.ndarray, out_sines: np.ndarray, band: tuple[float, float],
-                     n_freq: int | None = None, diameter: float = 0.0, svd_threshold: float = 0.4,
+                     n_freq: int | None = None, diameter: float | None = 0.0, svd_threshold: float = 0.4,
                      gate_dt: float | None = None, angular_filter: bool = True, name: str = "target",
                      gate: bool = True) -> Fingerprint:
     """Fingerprint from a calibration acquisition of the target alone at r0 (paper, Methods).
 
     band/n_freq/out_sines must be those the processor uses on the frames (checked at use).
-    gate_dt defaults to 1/Δf (paper: δt ∼ 1/Δf). Returns F_θθ(r0, f) with N_S and N_T filled in.
+    gate_dt defaults to 1/Δf (paper: δt ∼ 1/Δf). diameter None: measured from the calibration itself
+    (`first_arrival_diameter`), so the gate sits after the echo's first arrival rather than at r0;
+    gate=False keeps the whole record. Returns F_θθ(r0, f) with N_S and N_T filled in.
     """
     r0 = np.asarray(r0, dtype=float)
     if r0.shape != (3,):
         raise ValueError(f"r0: expected (x, y, z) in metres, got {r0}")
+    if diameter is None:
+        diameter = first_arrival_diameter(acq, r0)
     f_min, f_max = band
     dt = 1.0 / (f_max - f_min) if gate_dt is None else gate_dt
     gated = time_gate(acq, r0, diameter, dt) if gate else acq
@@ -259,7 +291,8 @@ def from_calibration(acq: Acquisition, r0: np.ndarray, out_sines: np.ndarray, ba
     n_t = (f_max - f_min) * effective_duration(gated, r0, diameter)
     return Fingerprint(np.ascontiguousarray(data, dtype=np.complex64), pw.freqs, pw.out_sines, pw.in_sines,
                        pw.c0, r0, name=name, provenance="calibration",
-                       state={"diameter_m": diameter, "svd_threshold": svd_threshold, "gate_dt_s": dt},
+                       state={"diameter_m": diameter, "svd_threshold": svd_threshold, "gate_dt_s": dt,
+                              "gate": "front" if gate else "none"},
                        n_s=float(np.mean(n_s_f)), singular_values=rel.astype(np.float32), n_t=float(n_t))
 
 

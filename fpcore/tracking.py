@@ -188,11 +188,14 @@ class Tracker:
 
     # --- per-frame update -------------------------------------------------------------------
     def update(self, gamma_maps: dict[str, np.ndarray], timestamp: float | None = None,
-               levels: dict[str, tuple[np.ndarray, np.ndarray | None]] | None = None) -> list[TrackState]:
+               levels: dict[str, tuple[np.ndarray, np.ndarray | None]] | None = None,
+               nulls: dict[str, NullModel] | None = None) -> list[TrackState]:
         """Advance all tracks with this frame's γ-maps (one per fingerprint name).
 
         levels: per name, (null level of γ², visible nodes) from fpcore.background.NullLevel — the
-        physical background the significance is measured against (default: the CFAR alone).
+        physical background the significance is measured against (default: the CFAR alone); nulls: the
+        maps' null models already computed by the caller (fpcore.cfar.null_model; used when the tracker
+        searches the current frame, i.e. integrate_frames = 1).
         """
         dt = self.config.default_dt
         if timestamp is not None and self._last_time is not None and timestamp > self._last_time:
@@ -215,8 +218,10 @@ class Tracker:
                 lv = None if any(v is None for _, v in recent) else np.mean([v for _, v in recent], axis=0)
             else:
                 searched, lv = g, level
-            mid = 0.5 * (self.grid.z[0] + self.grid.z[-1])
-            nm = null_model(searched, self.grid, self._resolution(mid), level=lv, visible=visible)
+            nm = (nulls or {}).get(name) if searched is g else None
+            if nm is None:
+                mid = 0.5 * (self.grid.z[0] + self.grid.z[-1])
+                nm = null_model(searched, self.grid, self._resolution(mid), level=lv, visible=visible)
             self._update_map(name, g, searched, nm)
         return self.states()
 

@@ -45,7 +45,8 @@ def numeric_state(fp: Fingerprint) -> dict[str, float]:
 def detection(d: CoreDetection, state: dict[str, float], truth_error_m: float | None) -> Detection:
     return Detection(fingerprint=d.fingerprint, state=state, position_m=tuple(np.asarray(d.position_m, float).tolist()),
                      gamma_max=max(float(d.gamma_max), 0.0), contrast_c_gamma=finite(d.c_gamma),
-                     contrast_c=finite(d.c_pfa), pfa=float(np.clip(d.pfa, 0.0, 1.0)),
+                     contrast_c=finite(d.c_pfa), contrast_local=finite(d.c_local),
+                     pfa=float(np.clip(d.pfa, 0.0, 1.0)),
                      precision_m=(float(d.precision_m[0]), float(d.precision_m[1])), truth_error_m=truth_error_m)
 
 
@@ -54,7 +55,8 @@ def track(tr: TrackState) -> Track:
     c = 0.5 * (c + c.T)
     return Track(id=tr.track_id, fingerprint=tr.fingerprint, position_m=tuple(tr.position_m),
                  velocity_m_s=tuple(tr.velocity_m_s), covariance=tuple(tuple(row) for row in c.tolist()),
-                 confidence=float(np.clip(tr.confidence, 0.0, 1.0)), age=tr.age)
+                 confidence=float(np.clip(tr.confidence, 0.0, 1.0)), age=tr.age, status=tr.status,
+                 pfa=float(np.clip(tr.pfa, 0.0, 1.0)))
 
 
 def frame_messages(res: FrameResult, frame_index: int, timestamp: float) -> dict[str, Any]:

@@ -149,8 +149,13 @@ class Detection(_Model):
     position_m: Vec3 = Field(description="[x, y, z], m.")
     gamma_max: float = Field(ge=0, description="Peak likelihood index γ (≤ 1).")
     contrast_c_gamma: float = Field(ge=0, description="C_γ = γ(target) / mean γ outside the target.")
-    contrast_c: float = Field(ge=0, description="C = (γ_max/γ_M)², γ_M = √⟨γ²⟩ (false-alarm contrast).")
-    pfa: float = Field(ge=0, le=1, description="False-alarm probability 1 − [1 − exp(−πC²/4)]^L.")
+    contrast_c: float = Field(ge=0, description="C = (γ_max/γ_M)², γ_M = √⟨γ²⟩ over the map (the paper's S6 C).")
+    contrast_local: float | None = Field(default=None, ge=0,
+                                         description="γ/γ_M(r) against the local null level at the peak "
+                                                     "(the contrast the PFA is computed from; schema 1.1).")
+    pfa: float = Field(ge=0, le=1, description="Calibrated false-alarm probability: that target-free γ reaches "
+                                               "this local contrast anywhere in the searched region "
+                                               "(docs/design.md §4.9).")
     precision_m: tuple[float, float] = Field(description="Cramér–Rao precision [lateral, axial], m.")
     truth_error_m: float | None = Field(default=None, ge=0, description="Distance to ground truth, m.")
 
@@ -171,6 +176,11 @@ class Track(_Model):
     covariance: tuple[Vec3, Vec3, Vec3]
     confidence: float = Field(ge=0, le=1)
     age: int = Field(ge=0, description="Frames since the track started.")
+    status: Literal["tentative", "confirmed", "coasting", "lost"] | None = Field(
+        default=None, description="tentative → confirmed → coasting (no significant measurement) → lost "
+                                  "(schema 1.1).")
+    pfa: float | None = Field(default=None, ge=0, le=1,
+                              description="Calibrated PFA of the last accepted measurement (schema 1.1).")
 
     @model_validator(mode="after")
     def _check(self) -> Track:
@@ -290,6 +300,7 @@ class Detections(Message):
     """Targets detected in one frame (key ``fp/<rig>/detections``)."""
 
     schema_name: Literal["Detections"] = "Detections"
+    schema_version: str = Field(default="1.1", pattern=VERSION_PATTERN, description="MAJOR.MINOR.")
     frame_index: int = Field(ge=0)
     timestamp: float = Field(description="Acquisition time of the input frame, s.")
     detections: list[Detection] = Field(default_factory=list)
@@ -299,6 +310,7 @@ class Tracks(Message):
     """Active tracks after one frame (key ``fp/<rig>/tracks``)."""
 
     schema_name: Literal["Tracks"] = "Tracks"
+    schema_version: str = Field(default="1.1", pattern=VERSION_PATTERN, description="MAJOR.MINOR.")
     frame_index: int = Field(ge=0)
     timestamp: float = Field(description="Acquisition time of the input frame, s.")
     tracks: list[Track] = Field(default_factory=list)

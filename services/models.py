@@ -19,7 +19,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from fpcore import Imager
     from fpcore.acquisition import Acquisition
 
-__all__ = ["build_fingerprint", "build_model", "calibration_position", "check_calibration"]
+__all__ = ["build_fingerprint", "build_model", "calibration_position", "check_calibration", "check_r0"]
 
 
 def build_model(spec: str, pw: PlaneWaveData, r0: np.ndarray = (0.0, 0.0, 0.0), name: str | None = None) -> Fingerprint:
@@ -51,9 +51,36 @@ def check_calibration(cal: Acquisition, data: Acquisition) -> None:
         raise ValueError(f"calibration sound_speed: {cal.c0:g} m/s, data has {data.c0:g} m/s (same expected)")
 
 
-def calibration_position(spec: FingerprintSpec) -> tuple[np.ndarray, float]:
+def check_r0(r0: np.ndarray, cal: Acquisition, resolution: tuple[float, float], force: bool = False) -> str | None:
+    """Compare a given r0 with the position the calibration file records (truth ``r0_m`` or its first
+    target): farther than one resolution cell (lateral δρ_D, axial c0/(2Δf)) is refused — the fingerprint
+    would be shifted from where it was measured and every detection displaced by the difference — unless
+    ``force``, which turns the refusal into the returned warning. None when they agree or nothing is
+    recorded."""
+    truth = cal.truth if isinstance(cal.truth, dict) else {}
+    rec = truth.get("r0_m")
+    if rec is None:
+        t = (truth.get("targets") or [{}])[0]
+        rec = t.get("position_m") if isinstance(t, dict) else None
+    if rec is None:
+        return None
+    rec = np.asarray(rec, float)
+    d = np.asarray(r0, float) - rec
+    lateral, axial = float(np.hypot(d[0], d[1])), abs(float(d[2]))
+    if lateral <= resolution[0] and axial <= resolution[1]:
+        return None
+    msg = (f"--r0: ({', '.join(f'{v * 1e3:.2f}' for v in r0)}) mm differs from the position the calibration "
+           f"records, ({', '.join(f'{v * 1e3:.2f}' for v in rec)}) mm, by {lateral * 1e3:.2f} mm laterally and "
+           f"{axial * 1e3:.2f} mm axially (resolution cell {resolution[0] * 1e3:.2f} × {resolution[1] * 1e3:.2f} mm)")
+    if not force:
+        raise ValueError(msg + "; every detection would be displaced by the difference (use --force to proceed)")
+    return msg
+
+
+def calibration_position(spec: FingerprintSpec) -> tuple[np.ndarray, float | None]:
     """(r0 (x, y, z) in metres, target diameter in metres) of a calibration spec: the spec's own values,
-    else the calibration's truth (``r0_m``, else its first target's position; ``diameter_m``)."""
+    else the calibration's truth (``r0_m``, else its first target's position; ``diameter_m``); a diameter
+    nobody knows is None (the gate is then placed at the echo's measured first arrival)."""
     cal = spec.calibration
     assert cal is not None
     truth = cal.truth if isinstance(cal.truth, dict) else {}
@@ -70,8 +97,8 @@ def calibration_position(spec: FingerprintSpec) -> tuple[np.ndarray, float]:
         raise ValueError(f"fingerprint {spec.name!r}: r0 must be (x, y, z) in metres, got {r0.tolist()}")
     d = spec.diameter
     if d is None:
-        d = float(truth.get("diameter_m", target.get("diameter_m", 0.0) if isinstance(target, dict) else 0.0))
-    return r0, float(d)
+        d = truth.get("diameter_m", target.get("diameter_m") if isinstance(target, dict) else None)
+    return r0, None if d is None else float(d)
 
 
 def build_fingerprint(spec: FingerprintSpec, acq: Acquisition, pw: PlaneWaveData | None, imager: Imager,
@@ -85,7 +112,7 @@ def build_fingerprint(spec: FingerprintSpec, acq: Acquisition, pw: PlaneWaveData
         check_calibration(cal, acq)
         r0, diameter = calibration_position(spec)
         return from_calibration(cal, r0, imager.out_sines_for(cal), band, n_freq, diameter=diameter,
-                                svd_threshold=svd_threshold, name=spec.name)
+                                svd_threshold=svd_threshold, name=spec.name, gate=spec.gate)
     r0 = np.asarray(spec.r0, float) if spec.r0 is not None else imager.grid.centre_index_point()
     if r0.shape == (2,):
         r0 = np.array([r0[0], 0.0, r0[1]])

@@ -23,9 +23,10 @@ from typing import Any
 
 import numpy as np
 
-from fpcore import Acquisition, Fingerprint, Grid, Imager, ImagingConfig, detect
+from fpcore import Acquisition, Fingerprint, Grid, Imager, ImagingConfig, NullLevel, detect
 from fpcore.acquisition import PlaneWaveData
-from fpcore.metrics import Detection
+from fpcore.cfar import NullModel, null_model
+from fpcore.metrics import DEFAULT_MAX_PFA, Detection, resolution_cell
 from fpcore.tracking import Tracker, TrackerConfig, TrackState
 from services.models import build_fingerprint
 from services.registry import Entry, FingerprintSpec
@@ -36,6 +37,8 @@ __all__ = [
     "PipelineConfig",
     "find_targets",
     "geometry_key",
+    "null_for",
+    "resolution",
     "make_imager",
     "truth_error",
     "truth_positions",
@@ -48,8 +51,11 @@ log = logging.getLogger("fp.pipeline")
 class PipelineConfig:
     """Processing settings. Ranges in metres; ``band`` in Hz (default: the frame's truth band, else the
     probe's −6 dB band); ``n_freq`` frequencies kept in the band (None: every bin of the 2×-padded record:
-    no delay wrap, fpcore Spectrum); ``n_peaks`` detections per fingerprint; ``track_integrate``: the
-    tracker searches the mean of the last K γ-maps (fpcore.tracking)."""
+    no delay wrap, fpcore Spectrum); ``n_peaks`` detections per fingerprint; ``max_pfa``: a detection is
+    reported only below this calibrated false-alarm probability (docs/design.md §4.9); ``interior``: the
+    border heuristic (skip maxima within δρ_D of the grid's border; off by default, the local significance
+    does not need it); ``track_integrate``: the tracker searches the mean of the last K γ-maps
+    (fpcore.tracking)."""
 
     band: tuple[float, float] | None = None
     n_freq: int | None = None
@@ -61,6 +67,8 @@ class PipelineConfig:
     spacing: float | None = None
     n_out: int | None = None
     n_peaks: int = 1
+    max_pfa: float = DEFAULT_MAX_PFA
+    interior: bool = False
     eps: float = 1e-5
     publish_image: bool = True
     track: bool = True
@@ -71,6 +79,8 @@ class PipelineConfig:
             raise ValueError(f"--svd-threshold: expected 0 < t <= 1, got {self.svd_threshold}")
         if self.n_peaks < 1:
             raise ValueError(f"--targets: expected >= 1, got {self.n_peaks}")
+        if not 0 < self.max_pfa <= 1:
+            raise ValueError(f"--max-pfa: expected 0 < p <= 1, got {self.max_pfa}")
         if self.track_integrate < 1:
             raise ValueError(f"--track-integrate: expected an integer >= 1, got {self.track_integrate}")
 
@@ -133,13 +143,30 @@ def truth_error(position: np.ndarray, truths: list[tuple[str | None, np.ndarray]
     return min((float(np.linalg.norm(pos - t)) for t in cands), default=None)
 
 
+def resolution(grid: Grid, acq: Acquisition, band: tuple[float, float]) -> tuple[float, float]:
+    """(δρ_D at the grid's middle depth, c0/(2Δf)): the resolution cell the null model is measured in."""
+    lam = acq.c0 / acq.probe.centre_frequency
+    return resolution_cell(lam, acq.probe.aperture[0], band[1] - band[0], acq.c0, 0.5 * (grid.z[0] + grid.z[-1]))
+
+
+def null_for(level: NullLevel | None, gamma: np.ndarray, grid: Grid, acq: Acquisition, pw: PlaneWaveData,
+             fp: Fingerprint, band: tuple[float, float]) -> NullModel:
+    """The local null model of one γ-map (fpcore.cfar), with the physical null level of `level`
+    (fpcore.background: the data's energy in the fingerprint's time support × its aperture factor)."""
+    res = resolution(grid, acq, band)
+    lev, vis = level.level(acq, pw, fp, res) if level is not None else (None, None)
+    return null_model(gamma, grid, res, level=lev, visible=vis)
+
+
 def find_targets(gamma: np.ndarray, grid: Grid, acq: Acquisition, band: tuple[float, float], name: str,
-                 n_peaks: int = 1, interior: bool = True) -> list[Detection]:
-    """Detections in one γ-map (``fpcore.detect``: C_γ, C, PFA, Cramér–Rao precision); ``interior`` skips
-    maxima within the diffraction resolution of the grid's border."""
+                 n_peaks: int = 1, interior: bool = False, null: NullModel | None = None,
+                 max_pfa: float | None = DEFAULT_MAX_PFA) -> list[Detection]:
+    """Detections in one γ-map (``fpcore.detect``: C_γ, C, calibrated PFA, Cramér–Rao precision) against
+    the map's null model (`null_for`; default: the CFAR alone), kept when PFA < ``max_pfa``;
+    ``interior`` skips maxima within the diffraction resolution of the grid's border."""
     lam = acq.c0 / acq.probe.centre_frequency
     return detect(gamma, grid, lam, acq.probe.aperture[0], band[1] - band[0], acq.c0, name=name,
-                  n_peaks=n_peaks, interior=interior)
+                  n_peaks=n_peaks, interior=interior, null=null, max_pfa=max_pfa)
 
 
 class Pipeline:
@@ -151,6 +178,7 @@ class Pipeline:
         self._entries: dict[str, Entry] = {s.name: Entry(s) for s in fingerprints}
         self.lock = threading.RLock()
         self._imager: Imager | None = None
+        self._level: NullLevel | None = None
         self._tracker: Tracker | None = None
         self._geom: tuple | None = None
         self._band: tuple[float, float] | None = None
@@ -179,6 +207,7 @@ class Pipeline:
             self._imager = imager = make_imager(acq, band, cfg.grid, ranges=ranges, n_freq=cfg.n_freq,
                                                 n_out=cfg.n_out, eps=cfg.eps)
             grid = imager.grid
+            self._level = NullLevel(imager)
             self._band = band
             self._geom = geometry_key(acq)
             self._ref = acq
@@ -194,6 +223,7 @@ class Pipeline:
                 if entry.fp is not None:
                     try:
                         imager.template(pw, entry.fp)
+                        self._level.aperture(acq, pw, entry.fp, resolution(grid, acq, band))  # cached, once
                     except ValueError as exc:
                         entry.fp, entry.error = None, str(exc)
             self.setup_s += time.perf_counter() - t0
@@ -210,6 +240,13 @@ class Pipeline:
         except ValueError as exc:
             entry.error = str(exc)
             log.error("fingerprint %r: %s", entry.spec.name, exc)
+
+    @property
+    def grid(self) -> Grid:
+        """The imaging grid of the current set-up (ValueError before the first set-up)."""
+        if self._imager is None:
+            raise ValueError("pipeline: not set up yet (no frame or calibration seen)")
+        return self._imager.grid
 
     # -- dictionary (services.registry.DictionaryHost) ----------------------------------------------------
     @property
@@ -308,11 +345,13 @@ class Pipeline:
             t2 = time.perf_counter()
             grid = imager.grid
             truths = truth_positions(acq.truth)
+            nulls = {n: null_for(self._level, g, grid, acq, pw, fps[n], band) for n, g in gammas.items()}
             dets: list[tuple[Detection, float | None]] = []
             for name, g in gammas.items():
-                for d in find_targets(g, grid, acq, band, name, cfg.n_peaks, interior=True):  # as fp locate
+                for d in find_targets(g, grid, acq, band, name, cfg.n_peaks, cfg.interior, nulls[name], cfg.max_pfa):
                     dets.append((d, truth_error(np.asarray(d.position_m, float), truths, name)))
-            tracks = self._tracker.update(gammas, acq.timestamp) if self._tracker is not None and gammas else []
+            tracks = (self._tracker.update(gammas, acq.timestamp, nulls=nulls)
+                      if self._tracker is not None and gammas else [])
             t3 = time.perf_counter()
         return FrameResult(acq, pw, band, grid, fps, gammas, image, dets, tracks,
                            {"spectrum_projection": t1 - t0, "gamma_kernel": t2 - t1, "detection": t3 - t2})

@@ -68,7 +68,8 @@ class FingerprintSpec:
     calibration: Acquisition | None = None
     model: str | None = None
     r0: tuple[float, float, float] | None = None
-    diameter: float | None = None
+    diameter: float | None = None  # None: from the calibration's truth, else measured (first arrival)
+    gate: bool = True  # the paper's time gate after the front face; False keeps the whole record
 
     def __post_init__(self) -> None:
         if (self.calibration is None) == (self.model is None):

@@ -42,7 +42,7 @@ Scenarios:
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -278,6 +278,11 @@ class Scenario:
         cols = [self._target_h(pl, r + v * tau, pl.in_medium, s[j:j + 1])
                 for j, tau in enumerate(self.sequence.transmit_times())]
         return np.concatenate(cols, axis=2)
+
+    def without_targets(self) -> Scenario:
+        """The same rig, medium and noise with no target in the scene: fog-only frames, the null
+        hypothesis a false-alarm probability is checked on (calibrations still work)."""
+        return replace(self, placements={n: replace(p, in_scene=False) for n, p in self.placements.items()})
 
     def frames(self) -> Iterator[Acquisition]:
         """All frames in order (generator)."""

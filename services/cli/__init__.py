@@ -1,6 +1,6 @@
 """`fp` — the command line front door (``main``; the ``fp`` entry point).
 
-`fp demo` runs the main job on the built-in simulated scenario (``services.cli.demo``). `fp locate`,
+`fp demo` runs the main job on the built-in simulated scenario (``services.cli.demo``). `fp locate`, `fp track`,
 `fp characterise` and `fp simulate` work on UFF files; `fp publish|process|record|recover` run the
 streaming nodes one by one; `fp view` and `fp figure` show recordings. Each command lives in its own
 module here (argument parser and run function); the work is done by the rest of ``services`` and by
@@ -21,6 +21,7 @@ from services.cli.process import add_process_parser
 from services.cli.publish import add_publish_parser
 from services.cli.record import add_record_parser, add_recover_parser
 from services.cli.simulate import add_simulate_parser
+from services.cli.track import add_track_parser
 from services.cli.view import add_view_parser
 
 __all__ = ["build_parser", "main"]
@@ -32,6 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = ap.add_subparsers(dest="command", required=True)
     add_demo_parser(sub)
     add_locate_parser(sub)
+    add_track_parser(sub)
     add_simulate_parser(sub)
     add_characterise_parser(sub)
     # Streaming nodes (issue 4): each registers its subcommand and handler (docs/design.md §2, §7).
@@ -45,8 +47,27 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def join_negative_values(argv: list[str]) -> list[str]:
+    """`--r0 -1.5mm,11mm` → `--r0=-1.5mm,11mm`: argparse takes a value that starts with '-' for an option
+    unless it is a plain number, so coordinates, ranges and velocities with a negative first component
+    are joined to their option here (any long option followed by '-<digit>' or '-.<digit>')."""
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        a = argv[i]
+        nxt = argv[i + 1] if i + 1 < len(argv) else ""
+        if (a.startswith("--") and "=" not in a and len(nxt) > 1 and nxt[0] == "-"
+                and (nxt[1].isdigit() or (nxt[1] == "." and nxt[2:3].isdigit()))):
+            out.append(f"{a}={nxt}")
+            i += 2
+            continue
+        out.append(a)
+        i += 1
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_args(join_negative_values(list(sys.argv[1:] if argv is None else argv)))
     try:
         return int(args.func(args))
     except (ValueError, OSError) as exc:

@@ -15,10 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
-from fpcore import Acquisition, Fingerprint, moving_fingerprint
+from fpcore import Acquisition, Fingerprint, NullLevel, moving_fingerprint
+from fpcore.metrics import DEFAULT_MAX_PFA
 from services.cli.imaging import add_imaging_arguments, grid_ranges
-from services.models import build_fingerprint, check_calibration
-from services.pipeline import find_targets, make_imager, truth_error, truth_positions
+from services.models import build_fingerprint, check_calibration, check_r0
+from services.pipeline import find_targets, make_imager, null_for, resolution, truth_error, truth_positions
 from services.registry import FingerprintSpec
 from services.units import parse_band, parse_length, parse_position
 
@@ -33,8 +34,17 @@ def add_locate_parser(sub: argparse._SubParsersAction) -> None:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--calibration", help="UFF file: the target alone in water at r0 (fingerprint source)")
     src.add_argument("--model", help="numerical fingerprint: 'point' or 'mirror:L=2mm,alpha=10' (alpha in degrees)")
-    p.add_argument("--r0", help="calibration target position X,Z[,Y] (default: from the calibration's truth)")
-    p.add_argument("--diameter", help="target size for the time gate, e.g. 10mm (default: from the truth, else 0)")
+    p.add_argument("--r0", help="calibration target position X,Z[,Y] (default: the position the calibration file "
+                                "records); refused if it differs from that by more than a resolution cell")
+    p.add_argument("--force", action="store_true", help="proceed (with a warning) when --r0 disagrees with the "
+                                                        "calibration file's recorded position")
+    p.add_argument("--diameter", help="target size for the time gate, e.g. 10mm (default: from the calibration's "
+                                      "truth, else measured from the calibration: the echo's first arrival)")
+    p.add_argument("--gate", choices=("front", "none"), default="front",
+                   help="calibration time gate: 'front' (paper: after the front face's echo) or 'none'")
+    p.add_argument("--max-pfa", type=float, default=DEFAULT_MAX_PFA,
+                   help=f"report a detection only below this calibrated false-alarm probability "
+                        f"(default {DEFAULT_MAX_PFA:g})")
     p.add_argument("--dataset", help="dataset name inside the UFF file(s) when there are several")
     add_imaging_arguments(p)
     p.add_argument("--json", help="write the results as JSON (SI units)")
@@ -43,10 +53,9 @@ def add_locate_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--velocity", metavar="VX,VZ[,VY]",
                    help="target velocity in m/s: use the motion-aware fingerprint (each transmit sees the target "
                         "where it is when that transmit fires; needs the data's PRF)")
-    p.add_argument("--allow-border", action="store_true",
-                   help="keep maxima closer than the diffraction resolution to the grid's border (skipped by "
-                        "default: there γ is most often the flank of something outside the region, e.g. the "
-                        "rise under a scattering layer's surface)")
+    p.add_argument("--skip-border", action="store_true",
+                   help="heuristic: skip maxima closer than the diffraction resolution to the grid's border "
+                        "(off by default: the local significance does not need it)")
     p.set_defaults(func=run_locate)
 
 
@@ -64,20 +73,34 @@ def _moving(fp: Fingerprint, text: str, data: Acquisition) -> Fingerprint:
                               data.sequence.transmit_times())
 
 
-def _r0(args: argparse.Namespace, cal: Acquisition) -> tuple[np.ndarray, float]:
-    target = (cal.truth.get("targets") or [{}])[0] if isinstance(cal.truth, dict) else {}
+def calibration_name(path: str, cal: Acquisition) -> str:
+    """The fingerprint's name: the target the calibration file records (so tracks and detections compare
+    with that target's truth), else the file's stem."""
+    truth = cal.truth if isinstance(cal.truth, dict) else {}
+    target = (truth.get("targets") or [{}])[0]
+    name = target.get("name") if isinstance(target, dict) else None
+    return str(name) if name else Path(path).stem
+
+
+def _r0(args: argparse.Namespace, cal: Acquisition) -> tuple[np.ndarray, float | None]:
+    """(r0, diameter) of the calibration: the options', else the file's; diameter None = measure it."""
+    truth = cal.truth if isinstance(cal.truth, dict) else {}
+    target = (truth.get("targets") or [{}])[0]
+    recorded = truth.get("r0_m", target.get("position_m") if isinstance(target, dict) else None)
     if args.r0:
         v = parse_position(args.r0, "--r0")
         r0 = np.array([v[0], v[2] if len(v) == 3 else 0.0, v[1]])
-    elif "position_m" in target:
-        r0 = np.asarray(target["position_m"], float)
+    elif recorded is not None:
+        r0 = np.asarray(recorded, float)
     else:
         raise ValueError("--r0: the calibration file has no target position in its truth; give --r0 X,Z[,Y]")
     if args.diameter:
         d = parse_length(args.diameter, "--diameter")
-    else:
-        d = float(target.get("diameter_m", 0.0))
-    return r0, d
+        if not d >= 0:
+            raise ValueError(f"--diameter: expected a length >= 0, got {args.diameter!r}")
+        return r0, d
+    d_rec = truth.get("diameter_m", target.get("diameter_m") if isinstance(target, dict) else None)
+    return r0, None if d_rec is None else float(d_rec)
 
 
 def run_locate(args: argparse.Namespace) -> int:
@@ -98,17 +121,28 @@ def run_locate(args: argparse.Namespace) -> int:
     band = parse_band(args.band) if args.band else first.default_band()
     imager = make_imager(first, band, ranges=grid_ranges(args), n_freq=args.n_freq, n_out=args.n_out)
     grid = imager.grid
+    if not 0 < args.max_pfa <= 1:
+        raise ValueError(f"--max-pfa: expected 0 < p <= 1, got {args.max_pfa}")
     if args.calibration:
         cal = read_uff(args.calibration, args.dataset)[0]
         check_calibration(cal, first)
         r0, diameter = _r0(args, cal)
-        spec = FingerprintSpec(Path(args.calibration).stem, calibration=cal, r0=tuple(r0), diameter=diameter)
+        if args.r0:
+            warning = check_r0(r0, cal, resolution(grid, first, band), force=args.force)
+            if warning:
+                console.print(f"[yellow]warning:[/yellow] {warning}")
+        spec = FingerprintSpec(calibration_name(args.calibration, cal), calibration=cal, r0=tuple(r0),
+                               diameter=diameter,
+                               gate=args.gate == "front")
     else:
         spec = FingerprintSpec(args.model.partition(":")[0], model=args.model, r0=(0.0, 0.0, 0.0))
     fp = build_fingerprint(spec, first, None, imager, band, args.n_freq, args.svd_threshold)
     if args.calibration:
-        console.print(f"fingerprint from {args.calibration}: r0 = {np.round(r0 * 1e3, 2)} mm, N_S = {fp.n_s:.1f}, "
-                      f"N_T = {fp.n_t:.1f}, G ≈ {fp.n_s * fp.n_t:.0f}")
+        how = ("no gate" if args.gate == "none" else
+               f"gate after the front face, d = {fp.state['diameter_m'] * 1e3:.1f} mm"
+               + (" (measured: first arrival)" if diameter is None else ""))
+        console.print(f"fingerprint from {args.calibration}: r0 = {np.round(r0 * 1e3, 2)} mm, {how}, "
+                      f"N_S = {fp.n_s:.1f}, N_T = {fp.n_t:.1f}, G ≈ {fp.n_s * fp.n_t:.0f}")
     if args.velocity:
         fp = _moving(fp, args.velocity, first)
     console.print(f"{len(frames)} frame(s), band {band[0] / 1e6:.2f}–{band[1] / 1e6:.2f} MHz, grid {grid.shape}")
@@ -116,12 +150,15 @@ def run_locate(args: argparse.Namespace) -> int:
     table = Table(title=f"fp locate {args.data}")
     for col in ("frame", "position (mm)", "γ_max", "C_γ", "C", "PFA", "δρ_L, δz_L (mm)", "error (mm)"):
         table.add_column(col, justify="right")
+    level = NullLevel(imager)
     with Progress(console=console, transient=True) as progress:
         task = progress.add_task("γ-maps", total=len(frames))
         for acq in frames:
             pw = imager.plane_waves(acq)
             gamma = imager.gamma(pw, fp)
-            dets = find_targets(gamma, grid, acq, band, fp.name, args.targets, interior=not args.allow_border)
+            nm = null_for(level, gamma, grid, acq, pw, fp, band)
+            dets = find_targets(gamma, grid, acq, band, fp.name, args.targets, interior=args.skip_border, null=nm,
+                                max_pfa=args.max_pfa)
             truths = truth_positions(acq.truth)
             row = {"frame_index": acq.frame_index, "timestamp_s": acq.timestamp, "detections": []}
             for d in dets:
@@ -129,18 +166,22 @@ def run_locate(args: argparse.Namespace) -> int:
                 err = truth_error(pos, truths)  # the nearest target, whatever its name
                 row["detections"].append({"fingerprint": d.fingerprint, "position_m": d.position_m,
                                           "gamma_max": d.gamma_max, "c_gamma": d.c_gamma, "c_pfa": d.c_pfa,
-                                          "pfa": d.pfa, "precision_m": d.precision_m, "truth_error_m": err})
+                                          "c_local": d.c_local, "pfa": d.pfa, "precision_m": d.precision_m,
+                                          "truth_error_m": err})
                 table.add_row(str(acq.frame_index), ", ".join(f"{v * 1e3:.2f}" for v in pos), f"{d.gamma_max:.3f}",
                               f"{d.c_gamma:.2f}", f"{d.c_pfa:.1f}", f"{d.pfa:.1e}",
                               f"{d.precision_m[0] * 1e3:.2f}, {d.precision_m[1] * 1e3:.3f}",
                               "" if err is None else f"{err * 1e3:.2f}")
+            if not dets:
+                table.add_row(str(acq.frame_index), f"no detection (PFA < {args.max_pfa:g})", *[""] * 6)
             results.append(row)
             progress.advance(task)
     console.print(table)
     if args.json:
         doc = {"data": str(args.data), "fingerprint": {"name": fp.name, "provenance": fp.provenance,
                                                         "r0_m": fp.r0.tolist(), "n_s": fp.n_s, "n_t": fp.n_t},
-               "band_hz": list(band), "grid_spacing_m": list(grid.spacing), "frames": results}
+               "band_hz": list(band), "grid_spacing_m": list(grid.spacing), "max_pfa": args.max_pfa,
+               "frames": results}
         Path(args.json).write_text(json.dumps(doc, indent=2))
         console.print(f"wrote {args.json}")
     if args.png and dets:
