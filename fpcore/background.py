@@ -29,6 +29,7 @@ from __future__ import annotations
 from collections import OrderedDict
 
 import numpy as np
+import scipy.fft as sfft
 from scipy.ndimage import uniform_filter
 
 from .acquisition import Acquisition, PlaneWaveData, Spectrum, to_plane_waves
@@ -50,9 +51,11 @@ def envelope_spectrum(data: np.ndarray) -> np.ndarray:
     """
     n_f = data.shape[0]
     n_t = 2 * n_f
-    a = np.fft.ifft(data, n=n_t, axis=0)
+    flat = np.ascontiguousarray(np.asarray(data).reshape(n_f, -1).T)  # FFT along the last, contiguous axis
+    a = sfft.ifft(flat, n=n_t, axis=1, workers=-1)
     e = (a.real ** 2 + a.imag ** 2) * n_t  # scale: Σ_t |a|² = Σ_f |R_f|² (Parseval)
-    return np.fft.fft(e, axis=0)[:n_f]
+    spec = sfft.rfft(e, axis=1, workers=-1)[:, :n_f]  # |a|² is real: ν ≥ 0 is all there is
+    return np.ascontiguousarray(spec.T).reshape(data.shape).astype(np.complex64)
 
 
 class NullPower:
@@ -62,6 +65,8 @@ class NullPower:
         self.grid = grid
         self.eps = eps
         self._kernels: OrderedDict[tuple, GridTransform] = OrderedDict()
+        self._fingerprints: OrderedDict[tuple, np.ndarray] = OrderedDict()  # Ê_F e^{−iK·r0} per fingerprint
+        self._data: tuple[tuple, np.ndarray] | None = None  # Ê_R of the last frame (one per frame, any fp)
         self._cache = cache
 
     @staticmethod
@@ -93,13 +98,31 @@ class NullPower:
             self._kernels.move_to_end(key)
         return kern, nu
 
+    def _fingerprint_side(self, pw: PlaneWaveData, fp: Fingerprint, nu: np.ndarray) -> np.ndarray:
+        """conj(Ê_F) e^{−iK·r0} with the one-sided weights (w_0 = 1, w_ν>0 = 2), cached per fingerprint."""
+        key = (getattr(fp, "token", id(fp)), nu.tobytes(), pw.out_sines.tobytes(), pw.in_sines.tobytes())
+        t = self._fingerprints.get(key)
+        if t is None:
+            t = np.conj(envelope_spectrum(np.asarray(fp.data)))
+            t[1:] *= 2.0
+            K = wavevectors(nu, pw.out_sines, pw.in_sines, pw.c0, self.grid.ndim)
+            t = (t.ravel() * np.exp(-1j * (K @ from_xyz(fp.r0, self.grid.ndim)))).astype(np.complex64)
+            self._fingerprints[key] = t
+            while len(self._fingerprints) > 8 * self._cache:
+                self._fingerprints.popitem(last=False)
+        return t
+
+    def _data_side(self, pw: PlaneWaveData) -> np.ndarray:
+        """Ê_R of this frame's data, computed once whatever the number of fingerprints."""
+        key = (id(pw.data), pw.data.shape, pw.data.__array_interface__["data"][0])
+        if self._data is None or self._data[0] != key:
+            self._data = (key, envelope_spectrum(np.asarray(pw.data)).ravel())
+        return self._data[1]
+
     def power(self, pw: PlaneWaveData, fp: Fingerprint) -> np.ndarray:
         """P(r) ≥ 0 on the grid (eq. B1), float64."""
         kern, nu = self._kernel(pw)
-        w = envelope_spectrum(np.asarray(pw.data)) * np.conj(envelope_spectrum(np.asarray(fp.data)))
-        w[1:] *= 2.0
-        K = wavevectors(nu, pw.out_sines, pw.in_sines, pw.c0, self.grid.ndim)
-        w = w.ravel() * np.exp(-1j * (K @ from_xyz(fp.r0, self.grid.ndim)))
+        w = self._data_side(pw) * self._fingerprint_side(pw, fp, nu)
         p = kern(w).real.astype(np.float64)
         return np.maximum(p, 0.0)
 

@@ -46,7 +46,7 @@ from math import gamma as gamma_fn
 from math import log, pi
 
 import numpy as np
-from scipy.ndimage import binary_dilation, uniform_filter, uniform_filter1d
+from scipy.ndimage import uniform_filter, uniform_filter1d
 from scipy.special import digamma, gammaln, kve
 
 from .grid import Grid
@@ -138,7 +138,13 @@ class NullModel:
         """S(r) = −ln P(T > T(r)) under the local law: the statistic on the exponential scale (equal to T
         where the background is Rayleigh speckle); detections are the maxima of S."""
         if self._significance is None:
-            self._significance = (-np.log(np.maximum(k_tail(self.statistic, self.shape), 1e-300))).astype(np.float32)
+            # S ≤ T for the K law (heavier tail); below T = 4 (PFA ≈ 1 over any region of a few resels)
+            # the exact value decides nothing, so the law is evaluated only above it.
+            sig = self.statistic.astype(np.float32, copy=True)
+            hot = (sig > 4.0) & np.isfinite(self.shape)
+            if hot.any():
+                sig[hot] = -np.log(np.maximum(k_tail(self.statistic[hot], self.shape[hot]), 1e-300))
+            self._significance = sig
         return self._significance
 
     def resels(self, mask: np.ndarray | None = None) -> np.ndarray:
@@ -246,7 +252,7 @@ def null_model(gamma: np.ndarray, grid: Grid, resolution: tuple[float, float], l
     bright = (t0 > censor) & vis
     if bright.any():
         radius = [max(1, int(np.ceil(c / s))) for c, s in zip(cells, grid.spacing, strict=True)]
-        bright = binary_dilation(bright, structure=np.ones([2 * r + 1 for r in radius], bool))
+        bright = uniform_filter(bright.astype(np.float32), [2 * r + 1 for r in radius], mode="constant") > 1e-6
     train = (vis & ~bright).astype(np.float64)
     power = local_mean(g2, train)
     power = np.where(np.isfinite(power), power, np.broadcast_to(med, g2.shape))

@@ -12,6 +12,7 @@ import argparse
 import json
 import logging
 
+from fpcore.metrics import DEFAULT_MAX_PFA
 from services.bus import add_bus_arguments, bus_from_args, open_session, stop_on_signals, tune_malloc, wait_until
 from services.cli.imaging import add_imaging_arguments, grid_ranges
 from services.nodes.processor import Processor, ProcessorConfig
@@ -43,6 +44,11 @@ def add_process_parser(sub: argparse._SubParsersAction) -> None:
     src.add_argument("--full", action="store_true", help="full-size scenario (default: quick)")
     img = p.add_argument_group("imaging")
     add_imaging_arguments(img, peaks_help="peaks reported per fingerprint")
+    img.add_argument("--max-pfa", type=float, default=DEFAULT_MAX_PFA,
+                     help=f"publish a detection only below this calibrated false-alarm probability "
+                          f"(default {DEFAULT_MAX_PFA:g})")
+    img.add_argument("--skip-border", action="store_true",
+                     help="heuristic: skip maxima within the diffraction resolution of the grid's border")
     img.add_argument("--no-image", action="store_true", help="do not publish the confocal image")
     img.add_argument("--no-track", action="store_true", help="do not run the tracker")
     img.add_argument("--track-integrate", type=int, default=1, metavar="K",
@@ -70,13 +76,17 @@ def specs_from_args(args: argparse.Namespace) -> list[FingerprintSpec]:
     from pathlib import Path
 
     from fpcore.io import read_uff
+    from services.cli.locate import calibration_name
 
     specs = []
     r0 = _xyz(args.r0, "--r0") if args.r0 else None
     diameter = parse_length(args.diameter, "--diameter") if args.diameter else None
     for path in args.calibration:
         cal = read_uff(path, args.dataset)[0]
-        specs.append(FingerprintSpec(Path(path).stem, calibration=cal, r0=r0, diameter=diameter))
+        name = calibration_name(path, cal)
+        if any(sp.name == name for sp in specs):  # two files of one target: keep both, named after the files
+            name = Path(path).stem
+        specs.append(FingerprintSpec(name, calibration=cal, r0=r0, diameter=diameter))
     for i, spec in enumerate(args.model):
         name = spec.partition(":")[0] + (f"{i}" if len(args.model) > 1 else "")
         specs.append(FingerprintSpec(name, model=spec, r0=r0))
@@ -92,7 +102,8 @@ def config_from_args(args: argparse.Namespace) -> ProcessorConfig:
         rig=args.rig, name=args.name, queue=args.queue, fifo_depth=args.fifo_depth,
         band=parse_band(args.band) if args.band else None, n_freq=args.n_freq, svd_threshold=args.svd_threshold,
         **grid_ranges(args), n_out=args.n_out,
-        n_peaks=args.targets, max_frame_bytes=args.max_frame_bytes, publish_image=not args.no_image,
+        n_peaks=args.targets, max_pfa=args.max_pfa, interior=args.skip_border, max_frame_bytes=args.max_frame_bytes,
+        publish_image=not args.no_image,
         track=not args.no_track, track_integrate=args.track_integrate, status_period=args.status_period)
 
 
