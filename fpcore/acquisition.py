@@ -308,9 +308,12 @@ def output_sines(probe: Probe, c0: float, f_max: float, n: int | None = None,
     if s_max is None:
         s_max = min(0.95, c0 / (2 * probe.pitch * probe.centre_frequency))
     axes = probe.grid_axes()
-    if not probe.is_linear and axes is None:
+    if probe.is_linear:
+        counts = [probe.n_elements]
+    elif axes is not None:
+        counts = [axes[0].size, axes[1].size]
+    else:
         raise ValueError("probe.positions: output_sines needs a linear or regular matrix array")
-    counts = [probe.n_elements] if probe.is_linear else [axes[0].size, axes[1].size]
     widths = np.broadcast_to(np.asarray(field_width if field_width is not None else np.nan, float), (2,))
 
     def axis(k: int) -> np.ndarray:

@@ -191,12 +191,12 @@ def _lag1_fwhm(t: np.ndarray, valid: np.ndarray, axis: int) -> float:
 def k_tail(t: np.ndarray | float, nu: np.ndarray | float) -> np.ndarray:
     """P(T > t) for a unit-mean K-distributed intensity of shape ν (Jakeman & Pusey 1976):
     2/Γ(ν) (ν t)^{ν/2} K_ν(2√(ν t)); ν → ∞ is the exponential law e^{−t} of Rayleigh speckle."""
-    t = np.maximum(np.asarray(t, float), 0.0)
-    nu = np.broadcast_to(np.asarray(nu, float), t.shape)
-    out = np.exp(-t)
-    fin = np.isfinite(nu) & (nu < 200) & (t > 0)
+    tv: np.ndarray = np.maximum(np.asarray(t, float), 0.0)
+    nv = np.broadcast_to(np.asarray(nu, float), tv.shape)
+    out = np.exp(-tv)
+    fin = np.isfinite(nv) & (nv < 200) & (tv > 0)
     if fin.any():
-        n, tt = nu[fin], t[fin]
+        n, tt = nv[fin], tv[fin]
         x = 2 * np.sqrt(n * tt)
         log_p = np.log(2) - gammaln(n) + 0.5 * n * np.log(n * tt) + np.log(kve(n, x)) - x
         out = out.copy()

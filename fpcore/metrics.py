@@ -60,7 +60,7 @@ def paper_pfa(c: float | np.ndarray, n_grains: float) -> np.ndarray | float:
 
 
 def _mesh(grid: Grid) -> list[np.ndarray]:
-    return np.meshgrid(*grid.axes, indexing="ij")
+    return list(np.meshgrid(*grid.axes, indexing="ij"))
 
 
 def _outside_mask(grid: Grid, centre: np.ndarray, radius: float, mesh: list[np.ndarray] | None = None) -> np.ndarray:
@@ -204,7 +204,7 @@ def detect(gamma: np.ndarray, grid: Grid, wavelength: float, aperture: float, ba
         work[~interior_peaks(g, grid, res_mid, mesh)] = -np.inf
     found: list[tuple[tuple[tuple[int, ...], tuple[int, ...]], np.ndarray, float, float]] = []
     while len(found) < n_peaks:
-        top = np.unravel_index(int(np.argmax(work)), work.shape)
+        top = tuple(int(i) for i in np.unravel_index(int(np.argmax(work)), work.shape))
         if not np.isfinite(work[top]):
             break
         idx = _gamma_peak_near(g, grid, top, (res_mid, axial_res))

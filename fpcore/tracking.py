@@ -137,7 +137,7 @@ class Tracker:
         self.tracks: list[_Track] = []
         self._next_id = 1
         self._last_time: float | None = None
-        self._mesh = np.meshgrid(*grid.axes, indexing="ij")
+        self._mesh = list(np.meshgrid(*grid.axes, indexing="ij"))
         mid = 0.5 * (grid.z[0] + grid.z[-1])
         self._margin = diffraction_resolution(wavelength, aperture, max(mid, wavelength))  # border band width
         self._band = border_band(grid, self._margin, self._mesh)
@@ -215,7 +215,8 @@ class Tracker:
             recent.append((g, level))
             if len(recent) > 1:
                 searched = np.mean([m for m, _ in recent], axis=0)
-                lv = None if any(v is None for _, v in recent) else np.mean([v for _, v in recent], axis=0)
+                known = [v for _, v in recent if v is not None]
+                lv = np.mean(known, axis=0) if len(known) == len(recent) else None
             else:
                 searched, lv = g, level
             nm = (nulls or {}).get(name) if searched is g else None
@@ -244,7 +245,7 @@ class Tracker:
         if not candidates.any():
             return None
         masked = np.where(candidates, nm.significance, -np.inf)
-        idx = np.unravel_index(int(np.argmax(masked)), gamma.shape)
+        idx = tuple(int(i) for i in np.unravel_index(int(np.argmax(masked)), gamma.shape))
         pos3, val = refine_peak(gamma, self.grid, idx)
         radius_nodes = np.array([radius / d for d in self.grid.spacing])
         p = nm.gate_pfa(float(nm.significance[idx]), radius_nodes)
@@ -274,8 +275,9 @@ class Tracker:
         if tracks and cands:
             cost = np.full((len(tracks), len(cands)), 1e9)
             for i, tr in enumerate(tracks):
+                gate = gated[i]
                 for j, (c, _, _, _) in enumerate(cands):
-                    s_cov = gated[i][3] if gated[i] is not None else np.eye(self.nd)
+                    s_cov = gate[3] if gate is not None else np.eye(self.nd)
                     v = c - tr.kf.x[: self.nd]
                     m2 = float(v @ np.linalg.solve(s_cov, v))
                     if m2 <= cfg.gate_sigma ** 2:
@@ -283,11 +285,11 @@ class Tracker:
             rows, cols = linear_sum_assignment(cost)
             assigned = {int(r): int(c) for r, c in zip(rows, cols, strict=True) if cost[r, c] < 1e9}
         for i, tr in enumerate(tracks):
-            j = assigned.get(i)
-            if j is None:
+            match = assigned.get(i)
+            if match is None:
                 self._miss(tr)
                 continue
-            c, val, p, _ = cands[j]
+            c, val, p, _ = cands[match]
             if p > cfg.p_keep:
                 self._miss(tr)
                 continue
