@@ -19,7 +19,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from fpcore import Imager
     from fpcore.acquisition import Acquisition
 
-__all__ = ["build_fingerprint", "build_model", "calibration_position", "check_calibration", "check_r0"]
+__all__ = ["build_fingerprint", "build_model", "calibration_position", "check_calibration", "check_r0",
+           "recorded_position"]
 
 
 def build_model(spec: str, pw: PlaneWaveData, r0: np.ndarray = (0.0, 0.0, 0.0), name: str | None = None) -> Fingerprint:
@@ -51,20 +52,26 @@ def check_calibration(cal: Acquisition, data: Acquisition) -> None:
         raise ValueError(f"calibration sound_speed: {cal.c0:g} m/s, data has {data.c0:g} m/s (same expected)")
 
 
+def recorded_position(cal: Acquisition) -> tuple[np.ndarray | None, float | None]:
+    """(r0 (x, y, z), diameter), in metres, that a calibration file records (`Acquisition.ground_truth`):
+    its ``r0_m``, else its first target's position; its ``diameter_m``, else its first target's. None
+    where the file records nothing."""
+    truth = cal.ground_truth
+    target = truth.targets[0] if truth.targets else None
+    r0 = truth.r0_m if truth.r0_m is not None else target.position_m if target is not None else None
+    d = truth.diameter_m if truth.diameter_m is not None else target.diameter_m if target is not None else None
+    return (None if r0 is None else np.asarray(r0, float)), (None if d is None else float(d))
+
+
 def check_r0(r0: np.ndarray, cal: Acquisition, resolution: tuple[float, float], force: bool = False) -> str | None:
     """Compare a given r0 with the position the calibration file records (truth ``r0_m`` or its first
     target): farther than one resolution cell (lateral δρ_D, axial c0/(2Δf)) is refused — the fingerprint
     would be shifted from where it was measured and every detection displaced by the difference — unless
     ``force``, which turns the refusal into the returned warning. None when they agree or nothing is
     recorded."""
-    truth = cal.truth if isinstance(cal.truth, dict) else {}
-    rec = truth.get("r0_m")
-    if rec is None:
-        t = (truth.get("targets") or [{}])[0]
-        rec = t.get("position_m") if isinstance(t, dict) else None
+    rec, _ = recorded_position(cal)
     if rec is None:
         return None
-    rec = np.asarray(rec, float)
     d = np.asarray(r0, float) - rec
     lateral, axial = float(np.hypot(d[0], d[1])), abs(float(d[2]))
     if lateral <= resolution[0] and axial <= resolution[1]:
@@ -83,22 +90,16 @@ def calibration_position(spec: FingerprintSpec) -> tuple[np.ndarray, float | Non
     nobody knows is None (the gate is then placed at the echo's measured first arrival)."""
     cal = spec.calibration
     assert cal is not None
-    truth = cal.truth if isinstance(cal.truth, dict) else {}
-    target = (truth.get("targets") or [{}])[0]
+    rec_r0, rec_d = recorded_position(cal)
     if spec.r0 is not None:
         r0 = np.asarray(spec.r0, float)
-    elif "r0_m" in truth:
-        r0 = np.asarray(truth["r0_m"], float)
-    elif isinstance(target, dict) and "position_m" in target:
-        r0 = np.asarray(target["position_m"], float)
+    elif rec_r0 is not None:
+        r0 = rec_r0
     else:
         raise ValueError(f"fingerprint {spec.name!r}: r0 unknown (give r0_m, or a calibration with truth)")
     if r0.shape != (3,):
         raise ValueError(f"fingerprint {spec.name!r}: r0 must be (x, y, z) in metres, got {r0.tolist()}")
-    d = spec.diameter
-    if d is None:
-        d = truth.get("diameter_m", target.get("diameter_m") if isinstance(target, dict) else None)
-    return r0, None if d is None else float(d)
+    return r0, rec_d if spec.diameter is None else float(spec.diameter)
 
 
 def build_fingerprint(spec: FingerprintSpec, acq: Acquisition, pw: PlaneWaveData | None, imager: Imager,

@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -28,6 +29,7 @@ from fpcore.acquisition import PlaneWaveData
 from fpcore.cfar import NullModel, null_model
 from fpcore.metrics import DEFAULT_MAX_PFA, Detection, resolution_cell
 from fpcore.tracking import Tracker, TrackerConfig, TrackState
+from fpcore.truth import Truth
 from services.models import build_fingerprint
 from services.registry import Entry, FingerprintSpec
 
@@ -125,13 +127,13 @@ def make_imager(acq: Acquisition, band: tuple[float, float], grid: Grid | None =
     return Imager(ImagingConfig(grid, band, n_freq, out_sines, **extra))
 
 
-def truth_positions(truth: dict[str, Any] | None) -> list[tuple[str | None, np.ndarray]]:
-    """(name, position) of the targets of a frame's ground truth (malformed entries skipped)."""
-    out = []
-    for t in (truth or {}).get("targets", []) or []:
-        if isinstance(t, dict) and isinstance(t.get("position_m"), list) and len(t["position_m"]) == 3:
-            out.append((t.get("name"), np.asarray(t["position_m"], float)))
-    return out
+def truth_positions(truth: Truth | Mapping[str, Any] | None) -> list[tuple[str | None, np.ndarray]]:
+    """(name, position) of the targets of a frame's ground truth (`Acquisition.ground_truth`, or the JSON
+    record a message carries); targets without a position (x, y, z) are skipped."""
+    if truth is None:
+        return []
+    view = truth if isinstance(truth, Truth) else Truth.from_dict(truth)
+    return [(t.name, t.position) for t in view.targets or [] if t.position_m is not None]
 
 
 def truth_error(position: np.ndarray, truths: list[tuple[str | None, np.ndarray]],
@@ -344,7 +346,7 @@ class Pipeline:
             image = imager.confocal(pw) if cfg.publish_image else None
             t2 = time.perf_counter()
             grid = imager.grid
-            truths = truth_positions(acq.truth)
+            truths = truth_positions(acq.ground_truth)
             nulls = {n: null_for(self._level, g, grid, acq, pw, fps[n], band) for n, g in gammas.items()}
             dets: list[tuple[Detection, float | None]] = []
             for name, g in gammas.items():

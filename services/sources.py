@@ -157,8 +157,10 @@ class SimulatorSource(AcquisitionSource):
         out = []
         for name in targets or self.scenario.target_names:
             cal = self.scenario.calibration(name)
-            out.append(FingerprintSpec(name, calibration=cal, r0=tuple(cal.truth["r0_m"]),
-                                       diameter=float(cal.truth.get("diameter_m", 0.0))))
+            truth = cal.ground_truth
+            x, y, z = truth.r0  # a simulated calibration records where its target is
+            out.append(FingerprintSpec(name, calibration=cal, r0=(float(x), float(y), float(z)),
+                                       diameter=float(truth.diameter_m or 0.0)))
         return out
 
 

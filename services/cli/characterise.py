@@ -96,13 +96,15 @@ def run_characterise(args: argparse.Namespace) -> int:
                "n_states": len(dic), "pixels_reported": int(mask.sum()),
                "alpha_rad_median": float(np.median(alpha_map[mask])) if mask.any() else None,
                "length_m_median": float(np.median(length_map[mask])) if mask.any() else None}
-    fibres = acq.truth.get("fibres") if isinstance(acq.truth, dict) else None
+    fibres = acq.ground_truth.fibres
     if fibres:
         errs = []
         for f in fibres:
-            idx = grid.nearest_index(np.array(f["position_m"]))
+            if f.position_m is None or f.alpha_rad is None:
+                continue  # nothing to compare with
+            idx = grid.nearest_index(np.array(f.position_m))
             if mask[idx]:
-                d = alpha_map[idx] - f["alpha_rad"]
+                d = alpha_map[idx] - f.alpha_rad
                 errs.append(abs((d + np.pi / 2) % np.pi - np.pi / 2))
         if errs:
             summary["truth_alpha_error_rad_median"] = float(np.median(errs))

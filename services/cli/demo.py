@@ -36,8 +36,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from rich.live import Live
     from rich.table import Table
 
+    from fpcore.truth import TargetTruth, Truth
     from services.nodes.local import run_pipeline
     from services.nodes.processor import ProcessorConfig
+    from services.pipeline import truth_positions
     from services.sources import SimulatorSource
     from services.viewing.figures import gamma_over_confocal
 
@@ -64,7 +66,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     history: list[dict] = []
 
     def on_frame(res: dict) -> None:
-        truths = {tg["name"]: np.array(tg["position_m"]) for tg in res["truth"].get("targets", [])}
+        truths = dict(truth_positions(res["truth"]))  # the frame's truth, as the RF message carries it
         tracks = {tr["fingerprint"]: f"{tr['id']} {tr.get('status') or ''}".strip() for tr in res["tracks"]}
         if not res["detections"]:
             rows.append((str(res["frame_index"]), "no detection", "", "", "", "", "", ""))
@@ -96,12 +98,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if det is not None:
         name = det["fingerprint"]
         gamma = last["gamma"][name]
-        target = next((t for t in last["truth"].get("targets", []) if t["name"] == name), {})
-        truth = np.array(target["position_m"]) if "position_m" in target else None
+        targets = Truth.from_dict(last["truth"] or {}).targets or []
+        target = next((t for t in targets if t.name == name), TargetTruth())
+        truth = target.position if target.position_m is not None else None
         png = Path(args.out) / "demo_gamma_over_confocal.png"
         gamma_over_confocal(png, last["grid"], last["image"], gamma, np.array(det["position_m"]), truth=truth,
                             title=f"frame {last['frame_index']}, {name}: C_γ = {det['contrast_c_gamma']:.1f}, "
-                                  f"PFA = {det['pfa']:.1e}", name=name, diameter=target.get("diameter_m"),
+                                  f"PFA = {det['pfa']:.1e}", name=name, diameter=target.diameter_m,
                             c_gamma=det["contrast_c_gamma"])
         console.print(f"figure: {png}")
     if history and last.get("image") is not None:

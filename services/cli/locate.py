@@ -16,9 +16,10 @@ from pathlib import Path
 import numpy as np
 
 from fpcore import Acquisition, Fingerprint, NullLevel, moving_fingerprint
+from fpcore.geometry import to_xyz
 from fpcore.metrics import DEFAULT_MAX_PFA
 from services.cli.imaging import add_imaging_arguments, grid_ranges
-from services.models import build_fingerprint, check_calibration, check_r0
+from services.models import build_fingerprint, check_calibration, check_r0, recorded_position
 from services.pipeline import find_targets, make_imager, null_for, resolution, truth_error, truth_positions
 from services.registry import FingerprintSpec
 from services.units import parse_band, parse_length, parse_position
@@ -69,29 +70,26 @@ def _moving(fp: Fingerprint, text: str, data: Acquisition) -> Fingerprint:
         raise ValueError(f"--velocity: expected VX,VZ[,VY] in m/s, got {text!r}")
     if data.sequence.prf is None:
         raise ValueError("--velocity: the data has no PRF (UFF channel_data/PRF), so the transmit times are unknown")
-    return moving_fingerprint(fp, np.array([v[0], v[2] if len(v) == 3 else 0.0, v[1]]),
-                              data.sequence.transmit_times())
+    velocity = to_xyz(v, 2) if len(v) == 2 else np.array([v[0], v[2], v[1]])  # VX,VZ,VY → (x, y, z)
+    return moving_fingerprint(fp, velocity, data.sequence.transmit_times())
 
 
 def calibration_name(path: str, cal: Acquisition) -> str:
     """The fingerprint's name: the target the calibration file records (so tracks and detections compare
     with that target's truth), else the file's stem."""
-    truth = cal.truth if isinstance(cal.truth, dict) else {}
-    target = (truth.get("targets") or [{}])[0]
-    name = target.get("name") if isinstance(target, dict) else None
-    return str(name) if name else Path(path).stem
+    targets = cal.ground_truth.targets
+    name = targets[0].name if targets else None
+    return name if name else Path(path).stem
 
 
 def _r0(args: argparse.Namespace, cal: Acquisition) -> tuple[np.ndarray, float | None]:
     """(r0, diameter) of the calibration: the options', else the file's; diameter None = measure it."""
-    truth = cal.truth if isinstance(cal.truth, dict) else {}
-    target = (truth.get("targets") or [{}])[0]
-    recorded = truth.get("r0_m", target.get("position_m") if isinstance(target, dict) else None)
+    recorded, d_rec = recorded_position(cal)
     if args.r0:
         v = parse_position(args.r0, "--r0")
-        r0 = np.array([v[0], v[2] if len(v) == 3 else 0.0, v[1]])
+        r0 = to_xyz(v, 2) if len(v) == 2 else np.array([v[0], v[2], v[1]])  # X,Z,Y → (x, y, z)
     elif recorded is not None:
-        r0 = np.asarray(recorded, float)
+        r0 = recorded
     else:
         raise ValueError("--r0: the calibration file has no target position in its truth; give --r0 X,Z[,Y]")
     if args.diameter:
@@ -99,8 +97,7 @@ def _r0(args: argparse.Namespace, cal: Acquisition) -> tuple[np.ndarray, float |
         if not d >= 0:
             raise ValueError(f"--diameter: expected a length >= 0, got {args.diameter!r}")
         return r0, d
-    d_rec = truth.get("diameter_m", target.get("diameter_m") if isinstance(target, dict) else None)
-    return r0, None if d_rec is None else float(d_rec)
+    return r0, d_rec
 
 
 def run_locate(args: argparse.Namespace) -> int:
@@ -159,7 +156,7 @@ def run_locate(args: argparse.Namespace) -> int:
             nm = null_for(level, gamma, grid, acq, pw, fp, band)
             dets = find_targets(gamma, grid, acq, band, fp.name, args.targets, interior=args.skip_border, null=nm,
                                 max_pfa=args.max_pfa)
-            truths = truth_positions(acq.truth)
+            truths = truth_positions(acq.ground_truth)
             row = {"frame_index": acq.frame_index, "timestamp_s": acq.timestamp, "detections": []}
             for d in dets:
                 pos = np.array(d.position_m)

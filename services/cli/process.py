@@ -12,6 +12,7 @@ import argparse
 import json
 import logging
 
+from fpcore.geometry import to_xyz
 from fpcore.metrics import DEFAULT_MAX_PFA
 from services.bus import add_bus_arguments, bus_from_args, open_session, stop_on_signals, tune_malloc, wait_until
 from services.cli.imaging import add_imaging_arguments, grid_ranges
@@ -67,8 +68,10 @@ def add_process_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def _xyz(text: str, option: str) -> tuple[float, float, float]:
+    """X,Z[,Y] (the options' order) → (x, y, z)."""
     v = parse_position(text, option)
-    return (v[0], v[2] if len(v) == 3 else 0.0, v[1])
+    x, y, z = to_xyz(v, 2) if len(v) == 2 else (v[0], v[2], v[1])
+    return float(x), float(y), float(z)
 
 
 def specs_from_args(args: argparse.Namespace) -> list[FingerprintSpec]:

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from fpcore import Grid
+from fpcore.geometry import to_xyz
 
 __all__ = ["Target", "gamma_over_confocal", "peak_position", "targets_over_confocal", "tracks_over_confocal"]
 
@@ -57,8 +58,7 @@ def peak_position(grid: Any, gamma: np.ndarray) -> np.ndarray:
     """[x, y, z] (m) of γ's maximum on a grid (``fpcore.grid.Grid`` or the wire ``Grid``; y = 0 in 2D)."""
     idx = np.unravel_index(int(np.argmax(gamma)), gamma.shape)
     axes = (grid.x, grid.z) if grid.y is None else (grid.x, grid.y, grid.z)
-    p = [float(a[k]) for a, k in zip(axes, idx, strict=True)]
-    return np.array([p[0], 0.0, p[1]] if grid.y is None else p)
+    return to_xyz([float(a[k]) for a, k in zip(axes, idx, strict=True)], len(axes))
 
 
 @dataclass

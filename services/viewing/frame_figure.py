@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from fpcore.truth import TargetTruth, Truth
 from services.messages import ConfocalImage, Detection, Detections, GammaMap, RFFrame
 from services.recording import iter_messages
 from services.viewing.figures import Target, peak_position, targets_over_confocal
@@ -42,7 +43,7 @@ def to_figure(recording: str | Path, frame: int, png: str | Path, *, fingerprint
     gammas: dict[str, GammaMap] = {}
     image: ConfocalImage | None = None
     dets: list[Detection] = []
-    truth: dict[str, dict[str, Any]] = {}
+    truth: dict[str, TargetTruth] = {}
     for _key, msg in iter_messages(recording):
         if getattr(msg, "frame_index", None) != frame:
             continue
@@ -53,9 +54,9 @@ def to_figure(recording: str | Path, frame: int, png: str | Path, *, fingerprint
         elif isinstance(msg, Detections):
             dets = msg.detections
         elif isinstance(msg, RFFrame):
-            for t in (msg.truth or {}).get("targets") or []:
-                if isinstance(t, dict) and isinstance(t.get("name"), str):
-                    truth[t["name"]] = t
+            for t in Truth.from_dict(msg.truth or {}).targets or []:
+                if t.name is not None:
+                    truth[t.name] = t
     if not gammas or image is None:
         raise ValueError(f"{recording}: frame {frame} has no γ-map{f' of {fingerprint}' if fingerprint else ''} "
                          f"and confocal image")
@@ -67,10 +68,9 @@ def to_figure(recording: str | Path, frame: int, png: str | Path, *, fingerprint
     for name, g in gammas.items():
         det = next((d for d in dets if d.fingerprint == name), None)
         found = np.array(det.position_m) if det is not None else peak_position(g.grid, g.gamma)
-        t = truth.get(name, {})
-        pos = t.get("position_m")
-        targets.append(Target(name, g.gamma, found, _diameter(det.state if det else None, g.state, t),
-                              np.asarray(pos, float) if isinstance(pos, list) and len(pos) == 3 else None,
+        t = truth.get(name, TargetTruth())
+        targets.append(Target(name, g.gamma, found, _diameter(det.state if det else None, g.state, t.to_dict()),
+                              t.position if t.position_m is not None else None,
                               det.contrast_c_gamma if det is not None else None))
         summary.append(f"{name}: C_γ = {det.contrast_c_gamma:.1f}, {_pfa_text(det.pfa)}" if det is not None
                        else f"{name}: no detection (γ's peak)")

@@ -15,16 +15,18 @@ __all__ = ["make_sample_recording"]
 
 def make_sample_recording(path: str | Path, n_frames: int = 4, spacing: float = 0.5e-3,
                           drop: tuple[str, ...] = ("rf",)) -> dict[str, int]:
-    """Record the quick sinking-sphere scenario with the project's pipeline (demo region of interest,
-    grid step ``spacing``) and copy it to ``path`` without the ``drop`` topics (RF frames: ~9 MB each).
+    """Record the quick sinking-sphere scenario with the project's pipeline (the scenario's region of
+    interest, grid step ``spacing``) and copy it to ``path`` without the ``drop`` topics (RF frames: ~9 MB each).
     Returns the message count per key."""
     from mcap.writer import CompressionType, Writer
 
-    from fpcore import Grid as CoreGrid
+    from fpcore.simulate import scenario
     from services.nodes.local import run_pipeline
     from services.nodes.processor import ProcessorConfig
 
-    grid = CoreGrid.regular((-11e-3, 11e-3), (20e-3, 31e-3), spacing, y_range=(-5e-3, 5e-3))
+    roi = scenario("sinking-sphere", quick=True).roi
+    assert roi is not None  # the scenario defines the region it is imaged over
+    grid = roi.grid(spacing)
     with tempfile.TemporaryDirectory() as tmp:
         summary = run_pipeline("sinking-sphere", rig="demo", out_dir=tmp, n_frames=n_frames,
                                processor=ProcessorConfig(rig="demo", queue="fifo", grid=grid))
