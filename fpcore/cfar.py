@@ -216,7 +216,7 @@ def k_shape(log_moment: np.ndarray) -> np.ndarray:
 
 def null_model(gamma: np.ndarray, grid: Grid, resolution: tuple[float, float], level: np.ndarray | None = None,
                visible: np.ndarray | None = None, window_cells: tuple[float, float] = (6.0, 3.0),
-               censor: float = 8.0, heavy_tails: bool = True) -> NullModel:
+               censor: float = 8.0, heavy_tails: bool = True, shape_guard: float = 1.0) -> NullModel:
     """Estimate the local null model of a γ-map (module doc, steps 1–3).
 
     resolution: (lateral, axial) resolution cell in metres (δρ_D, c0/(2Δf)): the unit of the training
@@ -249,19 +249,27 @@ def null_model(gamma: np.ndarray, grid: Grid, resolution: tuple[float, float], l
     med = np.nanmedian(np.where(np.isnan(flat).all(axis=0, keepdims=True), 1.0, flat), axis=0) / np.log(2)
     med = uniform_filter1d(med, sizes[-1], mode="nearest")
     t0 = g2 / np.maximum(med, 1e-300)
-    bright = (t0 > censor) & vis
-    if bright.any():
-        radius = [max(1, int(np.ceil(c / s))) for c, s in zip(cells, grid.spacing, strict=True)]
-        bright = uniform_filter(bright.astype(np.float32), [2 * r + 1 for r in radius], mode="constant") > 1e-6
-    train = (vis & ~bright).astype(np.float64)
+    hot = ((t0 > censor) & vis).astype(np.float32)
+
+    def guard(n_cells: float) -> np.ndarray:
+        """Censored nodes dilated by a guard of `n_cells` resolution cells (a separable box)."""
+        if not hot.any():
+            return np.zeros(hot.shape, bool)
+        radius = [max(1, int(np.ceil(n_cells * c / s))) for c, s in zip(cells, grid.spacing, strict=True)]
+        return uniform_filter(hot, [2 * r + 1 for r in radius], mode="constant") > 1e-6
+
+    train = (vis & ~guard(1.0)).astype(np.float64)
     power = local_mean(g2, train)
     power = np.where(np.isfinite(power), power, np.broadcast_to(med, g2.shape))
     stat = g2 / np.maximum(power, 1e-300)
     nu = np.full(g2.shape, np.inf)
     if heavy_tails:
-        n = local_mean(np.ones_like(stat), train)  # support of the window (NaN where none trains)
-        m1 = local_mean(stat, train)
-        ml = local_mean(np.log(np.maximum(stat, 1e-12)), train)
+        # The shape is estimated away from anything that stands out (a target's own sidelobes and
+        # reverberation aliases, several cells around it, would read as a heavy tail and mask it).
+        quiet = (vis & ~guard(shape_guard)).astype(np.float64)
+        n = local_mean(np.ones_like(stat), quiet)  # support of the window (NaN where none trains)
+        m1 = local_mean(stat, quiet)
+        ml = local_mean(np.log(np.maximum(stat, 1e-12)), quiet)
         ok = np.isfinite(n) & np.isfinite(m1) & np.isfinite(ml)
         nu = np.where(ok, k_shape(np.where(ok, ml - np.log(np.maximum(m1, 1e-30)), 0.0)), np.inf)
     fwhm = np.array([_lag1_fwhm(stat, train > 0, ax) for ax in range(nd)])

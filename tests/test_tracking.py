@@ -197,3 +197,22 @@ def test_detect_interior_on_coarse_and_thin_grids() -> None:
     gamma = _fog(rng, thin.shape) + _blob(thin, target, 0.5, 0.3e-3)
     (det,) = detect(gamma, thin, LAM, 20e-3, 0.8e6, 1500.0, interior=True)
     assert abs(det.position_m[0] - target[0]) < 0.2e-3
+
+
+def test_a_track_without_significant_measurements_coasts_then_is_lost() -> None:
+    """The target vanishes after 6 frames: the track reports 'coasting' with a falling confidence, then
+    'lost' once (after max_misses misses), then disappears — never a confident 1.0 on fog."""
+    rng = np.random.default_rng(4)
+    grid = Grid.centred((0.0, 25e-3), (120, 120), 0.15e-3)
+    target = np.array([1e-3, 0.0, 25e-3])
+    tracker = Tracker(grid, LAM, 20e-3, 0.8e6, 1500.0, TrackerConfig(max_tracks_per_map=1, max_misses=3))
+    history = []
+    for k in range(12):
+        gamma = _fog(rng, grid.shape) + (_blob(grid, target, 0.5, 0.3e-3) if k < 6 else 0.0)
+        history.append(tracker.update({"t": gamma.astype(np.float32)}, 0.1 * k))
+    statuses = [s[0].status if s else None for s in history]
+    assert statuses[0] == "tentative" and statuses[1:6] == ["confirmed"] * 5
+    assert statuses[6:9] == ["coasting"] * 3
+    assert statuses[9] == "lost" and statuses[10] is None
+    conf = [s[0].confidence for s in history[5:10]]
+    assert all(b < a for a, b in zip(conf[:-1], conf[1:], strict=True)) and conf[-1] < 0.1

@@ -1,0 +1,70 @@
+"""`fp track` (offline tracking with the processor's pipeline) and the calibration safeguards of
+`fp locate`/`fp track`: --r0 against the recorded position, negative coordinates, --gate."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from services.cli import join_negative_values, main
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory):
+    d = tmp_path_factory.mktemp("track")
+    assert main(["simulate", "sinking-cylinder", "--quick", "--out", str(d), "--frames", "4"]) == 0
+    return d
+
+
+def test_track_writes_locate_layout_with_tracks(sim, tmp_path) -> None:
+    out, png = tmp_path / "t.json", tmp_path / "t.png"
+    assert main(["track", str(sim / "frames.uff"), "--calibration", str(sim / "calibration_cylinder2.uff"),
+                 "--json", str(out), "--png", str(png)]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["fingerprint"] == "cylinder2"  # named after the target the calibration records
+    assert [f["frame_index"] for f in doc["frames"]] == [0, 1, 2, 3]
+    truth = np.array(json.loads((sim / "truth.json").read_text())["frames"][0]["targets"][1]["position_m"])
+    seen = set()
+    for f in doc["frames"]:
+        assert isinstance(f["detections"], list)
+        for det in f["detections"]:
+            assert det["pfa"] < 1e-3 and np.linalg.norm(np.array(det["position_m"]) - truth) < 1e-3
+        for tr in f["tracks"]:
+            assert set(tr) >= {"id", "position_m", "velocity_m_s", "pfa", "status"}
+            assert tr["status"] in ("tentative", "confirmed", "coasting", "lost")
+            assert tr["truth_error_m"] < 1e-3
+            seen.add(tr["id"])
+    assert len(seen) == 1  # one target, one track id
+    assert doc["frames"][-1]["tracks"][0]["status"] in ("confirmed", "coasting")
+    assert png.stat().st_size > 10_000
+
+
+def test_negative_values_are_joined_to_their_option() -> None:
+    assert join_negative_values(["locate", "d.uff", "--r0", "-1.5mm,11mm", "--x", "-4mm:4mm", "--targets", "2"]) == \
+        ["locate", "d.uff", "--r0=-1.5mm,11mm", "--x=-4mm:4mm", "--targets", "2"]
+    assert join_negative_values(["--velocity", "-.2,0.1", "-h"]) == ["--velocity=-.2,0.1", "-h"]
+    assert join_negative_values(["--json", "-"]) == ["--json", "-"]  # not a number: left alone
+
+
+def test_r0_far_from_the_recorded_position_is_refused_unless_forced(sim, tmp_path, capsys) -> None:
+    data, cal = str(sim / "frames.uff"), str(sim / "calibration_cylinder2.uff")  # recorded r0 (4.75, 0, 23.5) mm
+    assert main(["locate", data, "--calibration", cal, "--r0", "-4.75mm,23.5mm", "--frames", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "--r0" in err and "9.50 mm laterally" in err and "--force" in err and "Traceback" not in err
+    out = tmp_path / "forced.json"
+    assert main(["locate", data, "--calibration", cal, "--r0", "-4.75mm,23.5mm", "--frames", "0", "--force",
+                 "--json", str(out)]) == 0
+    assert "warning" in capsys.readouterr().out
+    # Within one resolution cell of the recorded position: accepted silently.
+    assert main(["locate", data, "--calibration", cal, "--r0", "4.8mm,23.5mm", "--frames", "0"]) == 0
+    assert "warning" not in capsys.readouterr().out
+
+
+def test_gate_none_and_measured_diameter(sim, tmp_path, capsys) -> None:
+    data, cal = str(sim / "frames.uff"), str(sim / "calibration_cylinder1.uff")
+    out = tmp_path / "g.json"
+    assert main(["locate", data, "--calibration", cal, "--gate", "none", "--frames", "0", "--json", str(out)]) == 0
+    assert "no gate" in capsys.readouterr().out
+    assert isinstance(json.loads(out.read_text())["frames"][0]["detections"], list)
