@@ -33,6 +33,7 @@ from .fingerprint import (
 from .grid import Grid, Roi
 from .kernel import GridTransform, direct_sum, wavevectors
 from .likelihood import Imager, ImagingConfig
+from .locate import Located, locate
 from .metrics import Detection, contrasts, cramer_rao_precision, detect, paper_pfa
 from .truth import TargetTruth, Truth
 
@@ -47,6 +48,7 @@ __all__ = [
     "Imager",
     "NullLevel",
     "ImagingConfig",
+    "Located",
     "PlaneWaveData",
     "PlaneWaveSequence",
     "Probe",
@@ -60,6 +62,7 @@ __all__ = [
     "detect",
     "direct_sum",
     "from_calibration",
+    "locate",
     "mirror_fingerprint",
     "moving_fingerprint",
     "output_sines",

@@ -26,8 +26,9 @@ import numpy as np
 
 from fpcore import Acquisition, Fingerprint, Grid, Imager, ImagingConfig, NullLevel, detect
 from fpcore.acquisition import PlaneWaveData
-from fpcore.cfar import NullModel, null_model
-from fpcore.metrics import DEFAULT_MAX_PFA, Detection, resolution_cell
+from fpcore.cfar import NullModel
+from fpcore.locate import null_of, resolution_of
+from fpcore.metrics import DEFAULT_MAX_PFA, Detection
 from fpcore.tracking import Tracker, TrackerConfig, TrackState
 from fpcore.truth import Truth
 from services.models import build_fingerprint
@@ -146,18 +147,14 @@ def truth_error(position: np.ndarray, truths: list[tuple[str | None, np.ndarray]
 
 
 def resolution(grid: Grid, acq: Acquisition, band: tuple[float, float]) -> tuple[float, float]:
-    """(δρ_D at the grid's middle depth, c0/(2Δf)): the resolution cell the null model is measured in."""
-    lam = acq.c0 / acq.probe.centre_frequency
-    return resolution_cell(lam, acq.probe.aperture[0], band[1] - band[0], acq.c0, 0.5 * (grid.z[0] + grid.z[-1]))
+    """(δρ_D at the grid's middle depth, c0/(2Δf)): the resolution cell of the null model (fpcore.locate)."""
+    return resolution_of(grid, acq, band)
 
 
 def null_for(level: NullLevel | None, gamma: np.ndarray, grid: Grid, acq: Acquisition, pw: PlaneWaveData,
              fp: Fingerprint, band: tuple[float, float]) -> NullModel:
-    """The local null model of one γ-map (fpcore.cfar), with the physical null level of `level`
-    (fpcore.background: the data's energy in the fingerprint's time support × its aperture factor)."""
-    res = resolution(grid, acq, band)
-    lev, vis = level.level(acq, pw, fp, res) if level is not None else (None, None)
-    return null_model(gamma, grid, res, level=lev, visible=vis)
+    """The local null model of one γ-map with `level`'s physical null level (``fpcore.locate.null_of``)."""
+    return null_of(gamma, grid, acq, pw, fp, band, level)
 
 
 def find_targets(gamma: np.ndarray, grid: Grid, acq: Acquisition, band: tuple[float, float], name: str,

@@ -1,0 +1,61 @@
+"""One call from a frame and a fingerprint to calibrated detections (docs/design.md §4.7–4.10).
+
+``locate(imager, acq, fp)`` = plane waves → γ-map (paper eq. P) → its local null model (the data's energy
+in the fingerprint's time support × the aperture factor, fpcore.background, corrected by the CFAR of
+fpcore.cfar) → the most significant peaks with C_γ, calibrated PFA and Cramér–Rao precision, kept below
+``max_pfa`` (fpcore.metrics.detect). The streaming pipeline (services.pipeline) runs the same steps.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .acquisition import Acquisition, PlaneWaveData
+from .background import NullLevel
+from .cfar import NullModel, null_model
+from .fingerprint import Fingerprint
+from .grid import Grid
+from .likelihood import Imager
+from .metrics import DEFAULT_MAX_PFA, Detection, detect, resolution_cell
+
+__all__ = ["Located", "locate", "null_of", "resolution_of"]
+
+
+@dataclass
+class Located:
+    """What `locate` found: the γ-map, its null model (significance, visible region) and the detections."""
+
+    gamma: np.ndarray
+    null: NullModel
+    detections: list[Detection]
+
+
+def resolution_of(grid: Grid, acq: Acquisition, band: tuple[float, float]) -> tuple[float, float]:
+    """(δρ_D at the grid's middle depth, c0/(2Δf)): the resolution cell the null model is measured in."""
+    lam = acq.c0 / acq.probe.centre_frequency
+    return resolution_cell(lam, acq.probe.aperture[0], band[1] - band[0], acq.c0, 0.5 * (grid.z[0] + grid.z[-1]))
+
+
+def null_of(gamma: np.ndarray, grid: Grid, acq: Acquisition, pw: PlaneWaveData, fp: Fingerprint,
+            band: tuple[float, float], level: NullLevel | None) -> NullModel:
+    """The local null model of one γ-map, with `level`'s physical null level (None: the CFAR alone)."""
+    res = resolution_of(grid, acq, band)
+    lev, vis = level.level(acq, pw, fp, res) if level is not None else (None, None)
+    return null_model(gamma, grid, res, level=lev, visible=vis)
+
+
+def locate(imager: Imager, acq: Acquisition, fp: Fingerprint, level: NullLevel | None = None, *,
+           pw: PlaneWaveData | None = None, n_peaks: int = 1, max_pfa: float | None = DEFAULT_MAX_PFA,
+           interior: bool = False) -> Located:
+    """γ-map of `fp` on `acq` and its detections with calibrated PFA (module doc). `level`: a NullLevel of
+    this imager, kept between frames (it caches the fingerprint's aperture factor); default: a new one."""
+    pw = imager.plane_waves(acq) if pw is None else pw
+    band = imager.config.band
+    gamma = imager.gamma(pw, fp)
+    nm = null_of(gamma, imager.grid, acq, pw, fp, band, NullLevel(imager) if level is None else level)
+    lam = acq.c0 / acq.probe.centre_frequency
+    dets = detect(gamma, imager.grid, lam, acq.probe.aperture[0], band[1] - band[0], acq.c0, name=fp.name,
+                  n_peaks=n_peaks, interior=interior, null=nm, max_pfa=max_pfa)
+    return Located(gamma, nm, dets)
