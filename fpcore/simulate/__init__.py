@@ -31,8 +31,6 @@ from .partial_wave import (
 )
 from .scenarios import (
     SCENARIOS,
-    Placement,
-    Scenario,
     bipennate_orientation,
     fast_cylinder,
     lesion_marker,
@@ -41,6 +39,7 @@ from .scenarios import (
     sinking_cylinder,
     sinking_sphere,
 )
+from .scene import Placement, Scenario
 from .targets import PAPER_SPHERE_MATERIAL, ElasticCylinder, ElasticSphere, MirrorSegment, PointCluster, Target
 from .waves import Band, TimeWindow, green, incident_phase, radiate_points
 
