@@ -29,40 +29,28 @@ with the separable ramp w̃_j = w_j e^{iK_j·r_c} = w_j P_fo Q_fi (P_fo = e^{ik_
 3. Depth synthesis: band bins → N_z depths with e^{iphl}/φ̂(ph).
 
 Everything geometric (lattice indices, ramps, fixed-point bin positions, cos/sin tables) is built once
-per geometry and grid; per frame only the weights change. The per-frame path is numba code (single
-precision, AVX-vectorized inner loops) run on a few Python threads, each on its own frequencies or
-rows: no BLAS and no numba/OpenMP pool, whose spinning workers fight over a 2-core machine.
-A transform holds its buffers: call one instance from one thread at a time.
+per geometry and grid; per frame only the weights change. The per-frame path is numba code
+(`fpcore.kernel_presum_loops`: single precision, AVX-vectorized inner loops) run on a few Python
+threads, each on its own frequencies or rows: no BLAS and no numba/OpenMP pool, whose spinning workers
+fight over a 2-core machine. A transform holds its buffers: call one instance from one thread at a time.
 """
 
 from __future__ import annotations
 
-import importlib
 import math
-import threading
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
-from types import ModuleType
 
 import numpy as np
 
+from . import kernel_presum_loops as loops
 from .geometry import cosines
 from .grid import Grid
 from .kernel import default_threads
-
-nb: ModuleType | None
-try:  # numba compiles the spreading loops; without it PresumTransform is unavailable
-    nb = importlib.import_module("numba")
-except ImportError:  # pragma: no cover - depends on the environment
-    nb = None
+from .kernel_presum_loops import FRAC, N_TABLE, pool, split, u64
 
 __all__ = ["PresumTransform", "lattice"]
 
 _REL_TOL = 1e-9
 _MAX_LATTICE = 1 << 14  # largest lattice extent (in steps δs) accepted per axis
-_TAB_BITS = 11
-_N_TABLE = 1 << _TAB_BITS  # kernel table resolution per cell (linear interpolation error ≈ 1e-6)
-_FRAC = 40  # fractional bits of the fixed-point depth positions
 _TAPS = 8  # taps stored per sample: one AVX vector; the kernel's width is ≤ 8
 
 
@@ -151,7 +139,7 @@ def _kernel_table(width: int, beta: float) -> tuple[np.ndarray, np.ndarray]:
 
     A point at fine position u spreads onto bins l0 + t, l0 = ⌊u⌋ − w/2 + 1, t = 0…w−1, with weight
     φ(u − l0 − t) = φ(w/2 − 1 + frac(u) − t)."""
-    x = width / 2 - 1 + np.arange(_N_TABLE + 2) / _N_TABLE
+    x = width / 2 - 1 + np.arange(N_TABLE + 2) / N_TABLE
     tab = _phi(x[:, None] - np.arange(width)[None, :], width, beta)
     return (np.ascontiguousarray(tab[:-1], dtype=np.float32),
             np.ascontiguousarray(np.diff(tab, axis=0), dtype=np.float32))
@@ -166,277 +154,6 @@ def _cos_sin(theta: np.ndarray, n: int, scale: np.ndarray | None = None) -> tupl
     inv = 1.0 if scale is None else 1.0 / np.asarray(scale, dtype=np.float64)[:, None]
     return (np.ascontiguousarray(np.cos(ph) * inv, dtype=np.float32),
             np.ascontiguousarray(np.sin(ph) * inv, dtype=np.float32))
-
-
-# ------------------------------------------------------------------------------------------------
-# numba kernels — the whole per-frame path. Single precision; flat float32 buffers in which a row
-# holds L real parts then L imaginary parts. They run on plain Python threads (`_pool`; the kernels
-# release the GIL) as small tasks handed out one at a time, each thread with its own accumulators:
-# no BLAS and no numba/OpenMP pool, whose spinning workers fight each other on a 2-core machine
-# (~8 ms per hand-over measured here).
-# Indices are uint64 (no negative-index wraparound code) and inner loops have run-time lengths, so
-# LLVM's loop vectorizer emits AVX code (numba leaves the SLP vectorizer off).
-
-if nb is not None:
-    _U = np.uint64
-    _jit = nb.njit(fastmath=True, cache=True, nogil=True)
-
-    @_jit
-    def _spread_depth(w, P, Q, ua, ub, go, gi, gbase, glen, tab, dtab, G, f0, fstep):  # pragma: no cover
-        """Depth spreading of the samples j = (f, o, i), f = f0, f0 + fstep, …:
-        G[f, g(o, i), re/im, l] += w_j P_fo Q_fi φ(u_j − l).
-
-        w (Nf, No, Ni, 2), P (Nf, No, 2), Q (Nf, Ni, 2): re/im pairs; g = go[o] + gi[i], the lattice group
-        (m_y·M_x + m_x). u = ua[f, o] + ub[f, i] ≥ 0, fixed point with _FRAC fractional bits: position from
-        the band's first bin, ⌊u⌋ the first of the 8 taps. Per (f, o), a vectorizable pass over i makes
-        the strengths and positions, then each sample adds its 8 taps."""
-        nf, no, ni, _ = w.shape
-        ntap = tab.shape[1]
-        tabf = tab.ravel()
-        dtabf = dtab.ravel()
-        shift = _FRAC - _TAB_BITS
-        fmask = (1 << shift) - 1
-        fscale = np.float32(1.0 / (1 << shift))
-        cre = np.empty(ni, np.float32)
-        cim = np.empty(ni, np.float32)
-        rr = np.empty(ni, np.float32)
-        kb = np.empty(ni, np.int64)
-        off = np.empty(ni, np.int64)
-        qr = np.empty(ni, np.float32)
-        qi = np.empty(ni, np.float32)
-        for f in range(f0, nf, fstep):
-            L = glen[f]
-            b0 = _U(gbase[f])
-            G[b0:_U(gbase[f + 1])] = 0
-            qr[:] = Q[f, :, 0]
-            qi[:] = Q[f, :, 1]
-            for o in range(no):
-                pr = P[f, o, 0]
-                pi = P[f, o, 1]
-                a = ua[f, o]
-                wo = w[f, o]
-                for i in range(ni):
-                    er = pr * qr[i] - pi * qi[i]
-                    ei = pr * qi[i] + pi * qr[i]
-                    xr = np.float32(wo[i, 0])
-                    xi = np.float32(wo[i, 1])
-                    cre[i] = xr * er - xi * ei
-                    cim[i] = xr * ei + xi * er
-                for i in range(ni):
-                    u = a + ub[f, i]
-                    kb[i] = ((u >> shift) & (_N_TABLE - 1)) * ntap
-                    rr[i] = np.float32(np.int32(u & fmask)) * fscale
-                    off[i] = (go[o] + gi[i]) * (L + L) + (u >> _FRAC)
-                uL = _U(L)
-                for i in range(ni):
-                    cr = cre[i]
-                    ci = cim[i]
-                    r = rr[i]
-                    k0 = _U(kb[i])
-                    dst = b0 + _U(off[i])
-                    dim = dst + uL
-                    for t in range(_U(ntap)):
-                        v = tabf[k0 + t] + r * dtabf[k0 + t]
-                        G[dst + t] += cr * v
-                        G[dim + t] += ci * v
-
-    @_jit
-    def _spread_lateral(G, gbase, glen, lstart, ux, uy, tab, dtab, W, f0, fstep):  # pragma: no cover
-        """Lateral spreading of the rows G[f, (m_y, m_x)] onto W[(k_y, k_x), re/im, l] (l on the global
-        band), f = f0, f0 + fstep, …. ux (Nf, M_x), uy (Nf, M_y) ≥ 0: positions from the first tap; taps
-        wrap modulo the fine grids (n_fy = 1, uy = 0 in 2D). W: (n_fy, n_fx, 2, nglob)."""
-        nfy, nfx, _, nglob = W.shape
-        nf, mx = ux.shape
-        my = uy.shape[1]
-        ntap = tab.shape[1]
-        ntab = tab.shape[0] - 1
-        nty = ntap if nfy > 1 else 1
-        ung = _U(nglob)
-        Wf = W.ravel()
-        for f in range(f0, nf, fstep):
-            L = _U(glen[f])
-            ls = _U(lstart[f])
-            wrap = ls + L > ung
-            for g in range(mx * my):
-                u = ux[f, g % mx]
-                iu = int(u)
-                x = (u - iu) * ntab
-                kx = int(x)
-                rx = np.float32(x - kx)
-                v = uy[f, g // mx]
-                iv = int(v)
-                y = (v - iv) * ntab
-                ky = int(y)
-                ry = np.float32(y - ky)
-                src = _U(gbase[f]) + _U(g) * (L + L)
-                for ty in range(nty):
-                    wy = tab[ky, ty] + ry * dtab[ky, ty] if nfy > 1 else np.float32(1)
-                    rowy = ((iv + ty) % nfy) * nfx
-                    for tx in range(ntap):
-                        wgt = wy * (tab[kx, tx] + rx * dtab[kx, tx])
-                        dre = _U(rowy + (iu + tx) % nfx) * (ung + ung)
-                        if not wrap:
-                            dre += ls
-                            dim = dre + ung
-                            for ll in range(L):
-                                Wf[dre + ll] += wgt * G[src + ll]
-                                Wf[dim + ll] += wgt * G[src + L + ll]
-                        else:
-                            for ll in range(L):
-                                lg = (ls + ll) % ung
-                                Wf[dre + lg] += wgt * G[src + ll]
-                                Wf[dre + ung + lg] += wgt * G[src + L + ll]
-
-    @_jit
-    def _accumulate(G, b0, n, c, s, acc):  # pragma: no cover
-        """acc[:n] = Σ_m c_m G[b0 + m n : …], acc[n:2n] = Σ_m s_m G[…] (rows taken four at a time)."""
-        nm = c.shape[0]
-        acc[:n + n] = 0
-        m = 0
-        while m + 4 <= nm:
-            c0, c1, c2, c3 = c[m], c[m + 1], c[m + 2], c[m + 3]
-            s0, s1, s2, s3 = s[m], s[m + 1], s[m + 2], s[m + 3]
-            r0 = b0 + _U(m) * n
-            r1 = r0 + n
-            r2 = r1 + n
-            r3 = r2 + n
-            for t in range(n):
-                g0 = G[r0 + t]
-                g1 = G[r1 + t]
-                g2 = G[r2 + t]
-                g3 = G[r3 + t]
-                acc[t] += c0 * g0 + c1 * g1 + c2 * g2 + c3 * g3
-                acc[n + t] += s0 * g0 + s1 * g1 + s2 * g2 + s3 * g3
-            m += 4
-        while m < nm:
-            c0, s0 = c[m], s[m]
-            r0 = b0 + _U(m) * n
-            for t in range(n):
-                g0 = G[r0 + t]
-                acc[t] += c0 * g0
-                acc[n + t] += s0 * g0
-            m += 1
-
-    @_jit
-    def _lat_y(G, b0, L, mx, Cy, Sy, ny, q0, q1, T, acc):  # pragma: no cover
-        """T[m_x, y, re/im, l] = Σ_{m_y} e^{iθ_{m_y} p_y} G[b0 + (m_y, m_x, re/im, l)], y = N_y//2 ± q for
-        q in [q0, q1): U = Σ C G, V = Σ S G (rows of M_x·2L), then U ± iV."""
-        L2 = L + L
-        n = _U(mx) * L2
-        cy = ny // 2
-        for q in range(q0, q1):
-            _accumulate(G, b0, n, Cy[q], Sy[q], acc)
-            for sgn in range(2):
-                y = cy + q if sgn == 0 else cy - q
-                if y < 0 or y >= ny or (sgn == 1 and q == 0):
-                    continue
-                sv = np.float32(1 - 2 * sgn)
-                for a in range(mx):  # U ± iV: re = Ur ∓ Vi, im = Ui ± Vr
-                    u = _U(a) * L2
-                    dst = _U(a * ny + y) * L2
-                    for t in range(L):
-                        T[dst + t] = acc[u + t] - sv * acc[n + u + L + t]
-                        T[dst + L + t] = acc[u + L + t] + sv * acc[n + u + t]
-
-    @_jit
-    def _lat_x(T, L, Cx, Sx, nx, ny, q0, q1, H, ls, acc):  # pragma: no cover
-        """H[x, y, re/im, ls + l (mod nglob)] += Σ_{m_x} e^{iθ_{m_x} p_x} T[m_x, y, re/im, l], x = N_x//2 ± q
-        for q in [q0, q1)."""
-        nglob = _U(H.shape[3])
-        Hf = H.ravel()
-        L2 = L + L
-        n = _U(ny) * L2
-        cx = nx // 2
-        wrap = ls + L > nglob
-        for q in range(q0, q1):
-            _accumulate(T, _U(0), n, Cx[q], Sx[q], acc)
-            for sgn in range(2):
-                x = cx + q if sgn == 0 else cx - q
-                if x < 0 or x >= nx or (sgn == 1 and q == 0):
-                    continue
-                sv = np.float32(1 - 2 * sgn)
-                for y in range(ny):
-                    u = _U(y) * L2
-                    dst = _U(x * ny + y) * (nglob + nglob)
-                    if not wrap:
-                        dst += ls
-                        for t in range(L):
-                            Hf[dst + t] += acc[u + t] - sv * acc[n + u + L + t]
-                            Hf[dst + nglob + t] += acc[u + L + t] + sv * acc[n + u + t]
-                    else:
-                        for t in range(L):
-                            lg = (ls + t) % nglob
-                            Hf[dst + lg] += acc[u + t] - sv * acc[n + u + L + t]
-                            Hf[dst + nglob + lg] += acc[u + L + t] + sv * acc[n + u + t]
-
-    @_jit
-    def _lateral_exact(G, gbase, glen, lstart, Cx, Sx, Cy, Sy, nx, ny, T, acc, H, f0, fstep):  # pragma: no cover
-        """Exact lateral DFTs of the frequencies f0, f0 + fstep, … accumulated into H."""
-        nf, qx, mx = Cx.shape
-        qy, my = Cy.shape[1], Cy.shape[2]
-        for f in range(f0, nf, fstep):
-            L = _U(glen[f])
-            b0 = _U(gbase[f])
-            if ny == 1 and my == 1:  # 2D: the block is already (m_x, 1, re/im, l)
-                _lat_x(G[b0:], L, Cx[f], Sx[f], nx, ny, 0, qx, H, _U(lstart[f]), acc)
-            else:
-                _lat_y(G, b0, L, mx, Cy[f], Sy[f], ny, 0, qy, T, acc)
-                _lat_x(T, L, Cx[f], Sx[f], nx, ny, 0, qx, H, _U(lstart[f]), acc)
-
-    @_jit
-    def _depth(H, A, B, out, r0, r1):  # pragma: no cover
-        """out[r, (n, re/im)] = Σ_c Σ_l Hr[c, r, l] A[l] + Hi[c, r, l] B[l] (band → depth, partial sums c)."""
-        nc = H.shape[0]
-        nglob, n2 = A.shape
-        for r in range(r0, r1):
-            o = out[r]
-            o[:] = 0
-            for l in range(nglob):
-                hr = H[0, r, 0, l]
-                hi = H[0, r, 1, l]
-                for c in range(1, nc):
-                    hr += H[c, r, 0, l]
-                    hi += H[c, r, 1, l]
-                a = A[l]
-                b = B[l]
-                for k in range(n2):
-                    o[k] += hr * a[k] + hi * b[k]
-
-
-_POOLS: dict[int, ThreadPoolExecutor] = {}
-
-
-def _pool(n: int, ntasks: int, fn: Callable[..., None], args: Callable[[int, int], tuple]) -> None:
-    """Run fn(*args(slot, t)) for the tasks t = 0…ntasks−1 on n threads (the calling one included),
-    handed out one at a time, so a thread slowed by other jobs on the machine takes fewer. slot ∈ [0, n)
-    names the running thread (its private buffers)."""
-    n = max(1, min(n, ntasks))
-    if n == 1:
-        for t in range(ntasks):
-            fn(*args(0, t))
-        return
-    tasks = iter(range(ntasks))
-    lock = threading.Lock()
-
-    def loop(slot: int) -> None:
-        while True:
-            with lock:
-                t = next(tasks, None)
-            if t is None:
-                return
-            fn(*args(slot, t))
-
-    if n not in _POOLS:
-        _POOLS[n] = ThreadPoolExecutor(max_workers=n - 1, thread_name_prefix="presum")
-    futures = [_POOLS[n].submit(loop, slot) for slot in range(1, n)]
-    loop(0)
-    for fut in futures:
-        fut.result()
-
-
-def _split(n: int, parts: int, c: int) -> tuple[int, int]:
-    """c-th of `parts` contiguous shares of range(n)."""
-    return n * c // parts, n * (c + 1) // parts
 
 
 # ------------------------------------------------------------------------------------------------
@@ -458,7 +175,7 @@ class PresumTransform:
     def __init__(self, freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, c0: float,
                  grid: Grid, eps: float = 1e-4, nthreads: int | None = None, lateral: str = "auto",
                  sigma: float | None = None) -> None:
-        if nb is None:
+        if loops.nb is None:
             raise ImportError("PresumTransform needs numba (pip install numba)")
         if lateral not in ("auto", "exact", "nufft"):
             raise ValueError(f"lateral: expected 'auto', 'exact' or 'nufft', got {lateral!r}")
@@ -519,10 +236,10 @@ class PresumTransform:
         ua = np.outer(k, co) * (dz / h) - (half - 1)
         ub = np.outer(k, ci) * (dz / h)
         start = np.floor(ua.min(axis=1) + ub.min(axis=1)).astype(np.int64) - 1
-        one = float(1 << _FRAC)  # fixed point: exact integer sums, cheap floor and fraction
+        one = float(1 << FRAC)  # fixed point: exact integer sums, cheap floor and fraction
         ua = np.rint((ua - start[:, None]) * one).astype(np.int64)
         ub = np.rint(ub * one).astype(np.int64)
-        glen = ((ua.max(axis=1) + ub.max(axis=1)) >> _FRAC) + _TAPS
+        glen = ((ua.max(axis=1) + ub.max(axis=1)) >> FRAC) + _TAPS
         self._ua, self._ub, self._glen = ua, ub, glen.astype(np.int64)
         self._gbase = np.concatenate([[0], np.cumsum(glen * 2 * mx * my)]).astype(np.int64)
         lo = int(start.min())
@@ -578,7 +295,7 @@ class PresumTransform:
     def supports(out_sines: np.ndarray, in_sines: np.ndarray, ndim: int) -> bool:
         """True when numba is available and the sines lie on one lattice (`applicable`): the `KernelType`
         test of `fpcore.kernel`."""
-        return nb is not None and PresumTransform.applicable(out_sines, in_sines, ndim)
+        return loops.nb is not None and PresumTransform.applicable(out_sines, in_sines, ndim)
 
     @classmethod
     def for_geometry(cls, freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, c0: float, grid: Grid,
@@ -616,25 +333,25 @@ class PresumTransform:
         nx, ny = self._Hs.shape[1:3]
         nz = self.shape[-1]
         out = np.empty((nx * ny, 2 * nz), dtype=np.float32)
-        _pool(nt, nk, _spread_depth, lambda c, k: (wr, self._P, self._Q, self._ua, self._ub, self._go, self._gi,
-                                                   self._gbase, self._glen, self._tab, self._dtab, self._G, k, nk))
+        pool(nt, nk, loops.spread_depth, lambda c, k: (wr, self._P, self._Q, self._ua, self._ub, self._go, self._gi,
+                                                       self._gbase, self._glen, self._tab, self._dtab, self._G, k, nk))
         self._Hs[:] = 0
         if self.lateral == "exact":
-            _pool(nt, nk, _lateral_exact, lambda c, k: (self._G, self._gbase, self._glen, self._lstart, self._Cx,
-                                                        self._Sx, self._Cy, self._Sy, nx, ny, self._T[c],
-                                                        self._acc[c], self._Hs[c], k, nk))
+            pool(nt, nk, loops.lateral_exact, lambda c, k: (self._G, self._gbase, self._glen, self._lstart, self._Cx,
+                                                            self._Sx, self._Cy, self._Sy, nx, ny, self._T[c],
+                                                            self._acc[c], self._Hs[c], k, nk))
         else:
             self._W[:] = 0
-            _pool(nt, nk, _spread_lateral, lambda c, k: (self._G, self._gbase, self._glen, self._lstart, self._ux,
-                                                         self._uy, self._tab, self._dtab, self._W[c], k, nk))
+            pool(nt, nk, loops.spread_lateral, lambda c, k: (self._G, self._gbase, self._glen, self._lstart, self._ux,
+                                                             self._uy, self._tab, self._dtab, self._W[c], k, nk))
             Ws = (self._W[0] if nt == 1 else self._W.sum(axis=0)).ravel()
-            nglob, H, nq = _U(self._nglob), self._Hs[0], 4 * nt
+            nglob, H, nq = u64(self._nglob), self._Hs[0], 4 * nt
             if ny > 1:
-                _pool(nt, nq, _lat_y, lambda c, t: (Ws, _U(0), nglob, self._W.shape[2], self._Cy, self._Sy, ny,
-                                                    *_split(self._Cy.shape[0], nq, t), self._T, self._acc[c]))
-            _pool(nt, nq, _lat_x, lambda c, t: (Ws if ny == 1 else self._T, nglob, self._Cx, self._Sx, nx, ny,
-                                                *_split(self._Cx.shape[0], nq, t), H, _U(0), self._acc[c]))
+                pool(nt, nq, loops.lat_y, lambda c, t: (Ws, u64(0), nglob, self._W.shape[2], self._Cy, self._Sy, ny,
+                                                        *split(self._Cy.shape[0], nq, t), self._T, self._acc[c]))
+            pool(nt, nq, loops.lat_x, lambda c, t: (Ws if ny == 1 else self._T, nglob, self._Cx, self._Sx, nx, ny,
+                                                    *split(self._Cx.shape[0], nq, t), H, u64(0), self._acc[c]))
         Hs = self._Hs.reshape(self._Hs.shape[0], nx * ny, 2, -1)
         nr = 4 * nt
-        _pool(nt, nr, _depth, lambda c, t: (Hs, self._A, self._B, out, *_split(nx * ny, nr, t)))
+        pool(nt, nr, loops.depth_synthesis, lambda c, t: (Hs, self._A, self._B, out, *split(nx * ny, nr, t)))
         return out.view(np.complex64).reshape(self.shape)
