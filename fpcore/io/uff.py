@@ -1,7 +1,9 @@
 """UFF (USTB's HDF5 ultrasound file format): plane-wave channel data in and out.
 
 Reads files written by USTB (MATLAB, ``uff.write_object``) and by pyuff-ustb, one
-:class:`~fpcore.acquisition.Acquisition` per frame, and writes files that both read back.
+:class:`~fpcore.acquisition.Acquisition` per frame, and writes files that both read back. The reader
+and the writer stay in this one file with the layout below: each mirrors the other field by field, and
+a change to one half is a change to the other.
 
 Layout written (h5py view; every UFF node carries the string attributes ``class`` and ``name``)::
 
