@@ -119,14 +119,14 @@ class NullModel:
     """The local null model of one γ-map (see the module doc).
 
     power: γ_M²(r), the local mean of γ² under the null, on the grid;
-    fwhm: FWHM of the underlying Gaussian field per grid axis, in nodes; n_train: independent cells
-    behind each scale estimate; statistic: T = γ²/γ_M² on the grid.
+    fwhm: FWHM of the underlying Gaussian field per grid axis, in nodes; train_cells: independent cells
+    behind each node's level estimate; statistic: T = γ²/γ_M² on the grid.
     """
 
     grid: Grid
     power: np.ndarray
     fwhm: np.ndarray
-    n_train: float
+    train_cells: np.ndarray
     statistic: np.ndarray
     shape: np.ndarray  # K-distribution shape ν per node (inf: Rayleigh speckle)
     visible: np.ndarray  # nodes searched (and counted as cells)
@@ -140,11 +140,14 @@ class NullModel:
         if self._significance is None:
             # S ≤ T for the K law (heavier tail); below T = 4 (PFA ≈ 1 over any region of a few resels)
             # the exact value decides nothing, so the law is evaluated only above it.
-            sig = self.statistic.astype(np.float32, copy=True)
+            sig = self.statistic.astype(np.float64, copy=True)
             hot = (sig > 4.0) & np.isfinite(self.shape)
             if hot.any():
                 sig[hot] = -np.log(np.maximum(k_tail(self.statistic[hot], self.shape[hot]), 1e-300))
-            self._significance = sig
+            # CA-CFAR: a level estimated from n independent cells turns the tail e^{−t} into
+            # (1 + t/n)^{−n} = e^{−n ln(1 + t/n)}; n is local (fewer training cells near the grid's edges).
+            n = np.maximum(np.asarray(self.train_cells, np.float64), 2.0)
+            self._significance = (n * np.log1p(sig / n)).astype(np.float32)
         return self._significance
 
     def resels(self, mask: np.ndarray | None = None) -> np.ndarray:
@@ -160,14 +163,15 @@ class NullModel:
         return np.array([1.0] + [r[d] * frac ** (d / dim) for d in range(1, dim + 1)])
 
     def pfa(self, value: float, mask: np.ndarray | None = None, resels: np.ndarray | None = None) -> float:
-        """Calibrated false-alarm probability of a maximum T = `value` found over `mask` (whole grid)."""
-        return max_tail(value, self.resels(mask) if resels is None else resels, self.n_train)
+        """Calibrated false-alarm probability of a maximum S = `value` (`significance`) over `mask`
+        (default: the visible nodes)."""
+        return max_tail(value, self.resels(mask) if resels is None else resels)
 
     def gate_pfa(self, value: float, radius_nodes: np.ndarray) -> float:
-        """PFA of a maximum T = `value` found in an ellipsoidal gate with these semi-axes (nodes)."""
+        """PFA of a maximum S = `value` found in an ellipsoidal gate with these semi-axes (nodes)."""
         keep = np.array(self.grid.shape) > 1
         semi = np.asarray(radius_nodes, float)[keep] / self.fwhm[keep]
-        return max_tail(value, resels_ellipsoid(np.maximum(semi, 1e-6)), self.n_train)
+        return max_tail(value, resels_ellipsoid(np.maximum(semi, 1e-6)))
 
 
 def _lag1_fwhm(t: np.ndarray, valid: np.ndarray, axis: int) -> float:
@@ -216,7 +220,8 @@ def k_shape(log_moment: np.ndarray) -> np.ndarray:
 
 def null_model(gamma: np.ndarray, grid: Grid, resolution: tuple[float, float], level: np.ndarray | None = None,
                visible: np.ndarray | None = None, window_cells: tuple[float, float] = (6.0, 3.0),
-               censor: float = 8.0, heavy_tails: bool = True, shape_guard: float = 1.0) -> NullModel:
+               censor: float = 8.0, heavy_tails: bool = True, shape_guard: float = 1.0,
+               global_shape: bool = False, train_scale: float = 1.0) -> NullModel:
     """Estimate the local null model of a γ-map (module doc, steps 1–3).
 
     resolution: (lateral, axial) resolution cell in metres (δρ_D, c0/(2Δf)): the unit of the training
@@ -272,9 +277,18 @@ def null_model(gamma: np.ndarray, grid: Grid, resolution: tuple[float, float], l
         ml = local_mean(np.log(np.maximum(stat, 1e-12)), quiet)
         ok = np.isfinite(n) & np.isfinite(m1) & np.isfinite(ml)
         nu = np.where(ok, k_shape(np.where(ok, ml - np.log(np.maximum(m1, 1e-30)), 0.0)), np.inf)
+        if global_shape:
+            # The same log-moment over the whole map: a mild excess of tail (ν of tens) is below what a
+            # window of a few hundred nodes resolves, not below what the whole map does.
+            q = quiet > 0
+            if q.sum() > 64:
+                t_q = stat[q]
+                nu_g = float(k_shape(np.mean(np.log(np.maximum(t_q, 1e-12))) - np.log(np.mean(t_q))))
+                nu = np.minimum(nu, nu_g)
     fwhm = np.array([_lag1_fwhm(stat, train > 0, ax) for ax in range(nd)])
-    window_resels = float(np.prod([n / f for n, f in zip(sizes, fwhm, strict=True)]))
-    n_train = max(window_resels * float(train[vis].mean()) if vis.any() else 2.0, 2.0)
+    # Independent training cells per node: the training nodes in its window over the nodes per resel.
+    count = uniform_filter(train, sizes, mode="constant") * float(np.prod(sizes))
+    train_cells = np.maximum(train_scale * count / float(np.prod(fwhm)), 2.0)
     level_out = power if level is None else power * np.asarray(level, np.float64)
-    return NullModel(grid, np.ascontiguousarray(level_out, dtype=np.float32), fwhm, n_train,
+    return NullModel(grid, np.ascontiguousarray(level_out, dtype=np.float32), fwhm, train_cells.astype(np.float32),
                      stat.astype(np.float32), nu, vis)

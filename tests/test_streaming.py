@@ -170,7 +170,7 @@ def test_end_to_end_record_and_replay(data, tmp_path) -> None:
         for d in dets:
             assert d.timestamp == pytest.approx(frames[d.frame_index].timestamp)
             det = d.detections[0]
-            assert det.fingerprint == "cal" and 0 < det.gamma_max <= 1
+            assert det.fingerprint == "marker" and 0 < det.gamma_max <= 1  # the target the calibration records
             assert det.truth_error_m is not None and det.truth_error_m < 0.5e-3
             assert det.pfa < 1e-3 and det.contrast_c_gamma > 3
         g = gammas[0]

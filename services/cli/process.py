@@ -35,7 +35,8 @@ def add_process_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--name", default="processor", help="node name (default processor)")
     src = p.add_argument_group("fingerprint dictionary (at least one, or add at run time)")
     src.add_argument("--calibration", action="append", default=[], metavar="FILE",
-                     help="UFF calibration (target alone at r0), repeatable; entry named after the file")
+                     help="UFF calibration (target alone at r0), repeatable; entry named after the target the file "
+                          "records (else the file)")
     src.add_argument("--r0", help="calibration target position X,Z[,Y] (default: from the calibration's truth)")
     src.add_argument("--diameter", help="target size for the time gate, e.g. 10mm (default: from the truth)")
     src.add_argument("--dataset", help="dataset name inside the calibration UFF")
