@@ -22,6 +22,7 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/ruff check fpcore services tests bench
+	$(BIN)/ruff format --check fpcore services tests bench
 	$(BIN)/python -m mypy fpcore
 	$(BIN)/python -m pytest
 

@@ -77,8 +77,10 @@ def bench_map(label: str, geom, eps: float, repeat: int, n_ref: int) -> None:
     K = wavevectors(freqs, so, si, c0, grid.ndim)
     weights = (R.ravel() * fp.centred_conj(grid.ndim)).astype(np.complex64)
     n_s = K.shape[0]
-    print(f"\n== {label}: N_s = {n_s:,} samples (Nf={len(freqs)}, N_o={len(so)}, N_i={len(si)}), "
-          f"grid {grid.shape}, eps={eps:g}")
+    print(
+        f"\n== {label}: N_s = {n_s:,} samples (Nf={len(freqs)}, N_o={len(so)}, N_i={len(si)}), "
+        f"grid {grid.shape}, eps={eps:g}"
+    )
     # Direct reference on n_ref random nodes, extrapolated to the full grid.
     flat = np.random.default_rng(3).choice(grid.size, n_ref, replace=False)
     sub = grid.points()[flat]
@@ -97,8 +99,10 @@ def bench_map(label: str, geom, eps: float, repeat: int, n_ref: int) -> None:
         out = kern(weights)
         err = np.abs(out.ravel()[flat] - ref).max() / np.abs(out).max()
         mem = _peak_mb(lambda kern=kern: kern(weights))
-        print(f"{name:34s} setup {t_setup * 1e3:8.1f} ms | map {t_map * 1e3:8.1f} ms | "
-              f"speed-up ×{t_ref / t_map:9.0f} | err {err:.1e} of max | peak {mem:7.1f} MB")
+        print(
+            f"{name:34s} setup {t_setup * 1e3:8.1f} ms | map {t_map * 1e3:8.1f} ms | "
+            f"speed-up ×{t_ref / t_map:9.0f} | err {err:.1e} of max | peak {mem:7.1f} MB"
+        )
     # The whole γ-map call (Hadamard product, norms, kernel) through the Imager.
     imager = Imager(ImagingConfig(grid, (freqs[0], freqs[-1]), len(freqs), so, eps))
     t_gamma = _median_time(lambda: imager.gamma(pw, fp), repeat)
@@ -113,8 +117,9 @@ def bench_dictionary(eps: float, n_alpha: int, n_len: int) -> None:
     pw = PlaneWaveData(R, freqs, so, si, c0)
     imager = Imager(ImagingConfig(grid, (freqs[0], freqs[-1]), len(freqs), so, eps))
     lam = c0 / freqs.mean()
-    dic = Dictionary(family=mirror_family(np.linspace(lam, 10 * lam, n_len), np.linspace(0, np.pi, n_alpha,
-                                                                                          endpoint=False)))
+    dic = Dictionary(
+        family=mirror_family(np.linspace(lam, 10 * lam, n_len), np.linspace(0, np.pi, n_alpha, endpoint=False))
+    )
     print(f"\n== dictionary: {len(dic)} mirror fingerprints ({n_alpha} α × {n_len} L) on the 2D size, with argmax")
     t = time.perf_counter()
     dic.evaluate(imager, pw, method="fft")
@@ -130,10 +135,14 @@ def bench_dictionary(eps: float, n_alpha: int, n_len: int) -> None:
     ref = sub.evaluate(imager, pw, method="exact", keep_all=True, batch=4).per_state
     fast = sub.evaluate(imager, pw, method="fft", keep_all=True).per_state
     err = np.abs(fast - ref).max() / ref.max()
-    print(f"next frames, FFT correlation (one NUFFT + per-state FFT): {t_fft:6.2f} s total, "
-          f"{t_fft / len(dic) * 1e3:5.2f} ms/state")
-    print(f"exact NUFFT per state (measured on {len(sub)}, extrapolated): {t_exact:6.2f} s "
-          f"→ speed-up ×{t_exact / t_fft:.1f}; error {err:.1e} of max; argmax map {res.best.shape}")
+    print(
+        f"next frames, FFT correlation (one NUFFT + per-state FFT): {t_fft:6.2f} s total, "
+        f"{t_fft / len(dic) * 1e3:5.2f} ms/state"
+    )
+    print(
+        f"exact NUFFT per state (measured on {len(sub)}, extrapolated): {t_exact:6.2f} s "
+        f"→ speed-up ×{t_exact / t_fft:.1f}; error {err:.1e} of max; argmax map {res.best.shape}"
+    )
     mem = _peak_mb(lambda: dic.evaluate(imager, pw, method="fft"))
     print(f"peak memory of the dictionary call: {mem:.0f} MB")
 

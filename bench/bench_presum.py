@@ -55,7 +55,7 @@ def geometry(which: str, disc: bool = False) -> tuple[np.ndarray, np.ndarray, np
         ds = 1.9 / 31 if disc else 0.04
         out = _tensor((np.arange(32) - 15.5) * ds)
         if disc:
-            out = out[np.sum(out ** 2, axis=1) <= 0.95 ** 2]
+            out = out[np.sum(out**2, axis=1) <= 0.95**2]
         inn = _tensor(np.arange(-5, 6) * ds)
         grid = Grid.centred((1e-3, -0.5e-3, 30e-3), (64, 64, 64), c0 / freqs.max() / 4)
     return freqs, out, inn, c0, grid
@@ -78,7 +78,7 @@ def _peak_mb(fn: Callable[[], object]) -> float:
     tracemalloc.start()
     try:
         fn()
-        return tracemalloc.get_traced_memory()[1] / 2 ** 20
+        return tracemalloc.get_traced_memory()[1] / 2**20
     finally:
         tracemalloc.stop()
 
@@ -89,9 +89,11 @@ def run(which: str, threads: int, repeats: int, n_points: int, disc: bool, eps: 
     n = freqs.size * so.shape[0] * si.shape[0]
     rng = np.random.default_rng(0)
     w = (rng.standard_normal(n) + 1j * rng.standard_normal(n)).astype(np.complex64)
-    print(f"\n== {which.upper()}{' (disc)' if disc else ''}: {freqs.size} f × {so.shape[0]} out × {si.shape[0]} in "
-          f"= {n / 1e6:.2f} M samples, grid {grid.shape}, Δ = {grid.spacing[0] * 1e6:.1f} µm, "
-          f"{threads} threads, eps = {eps:g}")
+    print(
+        f"\n== {which.upper()}{' (disc)' if disc else ''}: {freqs.size} f × {so.shape[0]} out × {si.shape[0]} in "
+        f"= {n / 1e6:.2f} M samples, grid {grid.shape}, Δ = {grid.spacing[0] * 1e6:.1f} µm, "
+        f"{threads} threads, eps = {eps:g}"
+    )
 
     t = time.perf_counter()
     P = PresumTransform(freqs, so, si, c0, grid, eps=eps, nthreads=threads)
@@ -100,9 +102,11 @@ def run(which: str, threads: int, repeats: int, n_points: int, disc: bool, eps: 
     B = P(w)
     t_first = time.perf_counter() - t
     med, best, cpu = _timeit(lambda: P(w), repeats)
-    print(f"presum   ({P.lateral} lateral, σ = {P.sigma:.2f}, bands {P._glen.min()}–{P._glen.max()} bins): "
-          f"setup {t_setup:.2f} s, first call {t_first:.2f} s, per map {med:.1f} ms (min {best:.1f}, "
-          f"CPU {cpu:.0f} ms)")
+    print(
+        f"presum   ({P.lateral} lateral, σ = {P.sigma:.2f}, bands {P._glen.min()}–{P._glen.max()} bins): "
+        f"setup {t_setup:.2f} s, first call {t_first:.2f} s, per map {med:.1f} ms (min {best:.1f}, "
+        f"CPU {cpu:.0f} ms)"
+    )
     rss_presum = _maxrss_mb()
 
     K = wavevectors(freqs, so, si, c0, ndim)
@@ -111,8 +115,9 @@ def run(which: str, threads: int, repeats: int, n_points: int, disc: bool, eps: 
     t_gsetup = time.perf_counter() - t
     Bg = G(w)
     gmed, gbest, gcpu = _timeit(lambda: G(w), max(3, repeats // 2))
-    print(f"finufft  (GridTransform): setup {t_gsetup:.2f} s, per map {gmed:.1f} ms (min {gbest:.1f}, "
-          f"CPU {gcpu:.0f} ms)")
+    print(
+        f"finufft  (GridTransform): setup {t_gsetup:.2f} s, per map {gmed:.1f} ms (min {gbest:.1f}, CPU {gcpu:.0f} ms)"
+    )
     print(f"speed-up {gmed / med:.1f}× (median), {gbest / best:.1f}× (min), {gcpu / cpu:.1f}× (CPU)")
 
     flat = B.ravel()
@@ -122,16 +127,20 @@ def run(which: str, threads: int, repeats: int, n_points: int, disc: bool, eps: 
     peak = float(np.abs(flat).max())
     err = np.abs(flat[idx] - ref).max() / peak
     gerr = np.abs(Bg.ravel()[idx] - ref).max() / peak
-    print(f"error vs direct_sum at {idx.size} nodes (peak included), / map max: presum {err:.2e}, "
-          f"finufft {gerr:.2e}; |presum − finufft| max over the map / max: "
-          f"{np.abs(B - Bg).max() / peak:.2e}   ({time.perf_counter() - t:.1f} s)")
+    print(
+        f"error vs direct_sum at {idx.size} nodes (peak included), / map max: presum {err:.2e}, "
+        f"finufft {gerr:.2e}; |presum − finufft| max over the map / max: "
+        f"{np.abs(B - Bg).max() / peak:.2e}   ({time.perf_counter() - t:.1f} s)"
+    )
 
     mem_setup = _peak_mb(lambda: PresumTransform(freqs, so, si, c0, grid, eps=eps, nthreads=threads))
     mem_call = _peak_mb(lambda: P(w))
-    buffers = sum(v.nbytes for v in vars(P).values() if isinstance(v, np.ndarray)) / 2 ** 20
-    print(f"memory (presum): buffers {buffers:.0f} MB, peak during set-up {mem_setup:.0f} MB, per call "
-          f"{mem_call:.1f} MB (tracemalloc); process max RSS before finufft {rss_presum:.0f} MB "
-          f"(weights {w.nbytes / 2 ** 20:.0f} MB)")
+    buffers = sum(v.nbytes for v in vars(P).values() if isinstance(v, np.ndarray)) / 2**20
+    print(
+        f"memory (presum): buffers {buffers:.0f} MB, peak during set-up {mem_setup:.0f} MB, per call "
+        f"{mem_call:.1f} MB (tracemalloc); process max RSS before finufft {rss_presum:.0f} MB "
+        f"(weights {w.nbytes / 2**20:.0f} MB)"
+    )
 
 
 def _maxrss_mb() -> float:

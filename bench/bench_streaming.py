@@ -38,10 +38,16 @@ CACHE = Path("out/bench/cache")
 
 #: name → (scenario, targets used as fingerprints, processor grid settings)
 CASES: dict[str, dict[str, Any]] = {
-    "3d": {"scenario": "sinking-sphere", "targets": ["sphere1"],
-           "grid": {"x_range": (-9e-3, -1e-3), "y_range": (-4e-3, 4e-3), "z_range": (18e-3, 30e-3)}},
-    "2d": {"scenario": "muscle-fibres", "targets": ["fibre"],
-           "grid": {"x_range": (-6e-3, 6e-3), "z_range": (10e-3, 20e-3)}},
+    "3d": {
+        "scenario": "sinking-sphere",
+        "targets": ["sphere1"],
+        "grid": {"x_range": (-9e-3, -1e-3), "y_range": (-4e-3, 4e-3), "z_range": (18e-3, 30e-3)},
+    },
+    "2d": {
+        "scenario": "muscle-fibres",
+        "targets": ["fibre"],
+        "grid": {"x_range": (-6e-3, 6e-3), "z_range": (10e-3, 20e-3)},
+    },
 }
 
 
@@ -59,8 +65,11 @@ def cached_frames(scenario: str, n: int, targets: list[str]) -> tuple[list[Acqui
         write_uff(frames_path, frames)
         for name, p in cal_paths.items():
             write_uff(p, sc.calibration(name))
-        print(f"  simulated {n} frame(s) + {len(targets)} calibration(s) of {scenario} in "
-              f"{time.perf_counter() - t:.1f} s (cached in {CACHE})", flush=True)
+        print(
+            f"  simulated {n} frame(s) + {len(targets)} calibration(s) of {scenario} in "
+            f"{time.perf_counter() - t:.1f} s (cached in {CACHE})",
+            flush=True,
+        )
     return read_uff(frames_path), {t: read_uff(p)[0] for t, p in cal_paths.items()}
 
 
@@ -72,25 +81,41 @@ def run_case(name: str, args: argparse.Namespace) -> dict[str, Any]:
     repeat = -(-total // len(frames))
     specs = [FingerprintSpec(t, calibration=c) for t, c in cals.items()]
     cfg = ProcessorConfig(rig=f"bench{name}", queue="fifo", n_freq=args.n_freq, **case["grid"])
-    print(f"[{name}] {case['scenario']} (quick): {a.probe.n_elements} elements × {a.sequence.n_waves} plane waves "
-          f"× {a.n_samples} samples = {a.rf.nbytes / 1e6:.1f} MB/frame; fingerprints {case['targets']}; "
-          f"{args.warmup} warm-up + {args.frames} frames", flush=True)
+    print(
+        f"[{name}] {case['scenario']} (quick): {a.probe.n_elements} elements × {a.sequence.n_waves} plane waves "
+        f"× {a.n_samples} samples = {a.rf.nbytes / 1e6:.1f} MB/frame; fingerprints {case['targets']}; "
+        f"{args.warmup} warm-up + {args.frames} frames",
+        flush=True,
+    )
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) if not args.keep else Path("out/bench") / name
         t = time.perf_counter()
-        s = run_pipeline(AcquisitionSource(frames, repeat=repeat, limit=total), rig=cfg.rig, out_dir=out,
-                         n_frames=total, fingerprints=specs, processor=cfg, record=not args.no_record,
-                         shm=args.shm, warmup=args.warmup, window=args.window)
+        s = run_pipeline(
+            AcquisitionSource(frames, repeat=repeat, limit=total),
+            rig=cfg.rig,
+            out_dir=out,
+            n_frames=total,
+            fingerprints=specs,
+            processor=cfg,
+            record=not args.no_record,
+            shm=args.shm,
+            warmup=args.warmup,
+            window=args.window,
+        )
         wall = time.perf_counter() - t
-    measured = s["frames"][args.warmup:]
+    measured = s["frames"][args.warmup :]
     dets = [d for r in measured for d in r["detections"]]
     err = sorted(d["truth_error_m"] for d in dets if d["truth_error_m"] is not None)
     lat = s["latency_ms"]
-    print(f"  sustained {s['frame_rate_hz']:.2f} frames/s; publish→detection latency median {lat['median']:.0f} ms, "
-          f"p95 {lat['p95']:.0f} ms; processed {s['frames_processed']}/{s['frames_published']}, dropped "
-          f"{s['dropped']}, rejected {s['rejected']}; set-up {s['setup_s']:.1f} s, run {wall:.1f} s", flush=True)
-    shares = "  ".join(f"{k.replace('_', ' ')} {100 * s['stage_share'][k]:.1f}% "
-                       f"({1e3 * s['stage_mean_s'][k]:.1f} ms)" for k in STAGES)
+    print(
+        f"  sustained {s['frame_rate_hz']:.2f} frames/s; publish→detection latency median {lat['median']:.0f} ms, "
+        f"p95 {lat['p95']:.0f} ms; processed {s['frames_processed']}/{s['frames_published']}, dropped "
+        f"{s['dropped']}, rejected {s['rejected']}; set-up {s['setup_s']:.1f} s, run {wall:.1f} s",
+        flush=True,
+    )
+    shares = "  ".join(
+        f"{k.replace('_', ' ')} {100 * s['stage_share'][k]:.1f}% ({1e3 * s['stage_mean_s'][k]:.1f} ms)" for k in STAGES
+    )
     print(f"  stages per frame: {shares}", flush=True)
     if dets:
         c = sorted(d["contrast_c_gamma"] for d in dets)[len(dets) // 2]
@@ -114,8 +139,11 @@ def main() -> int:
     ap.add_argument("--keep", action="store_true", help="keep the recordings under out/bench/<case>")
     ap.add_argument("--json", help="write the summaries as JSON")
     args = ap.parse_args()
-    print(f"bench_streaming: {os.cpu_count()} CPU(s), recorder {'off' if args.no_record else 'on'}, "
-          f"shm {args.shm}, {args.window} frame(s) in flight", flush=True)
+    print(
+        f"bench_streaming: {os.cpu_count()} CPU(s), recorder {'off' if args.no_record else 'on'}, "
+        f"shm {args.shm}, {args.window} frame(s) in flight",
+        flush=True,
+    )
     results = [run_case(name, args) for name in ([args.only] if args.only else CASES)]
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2))

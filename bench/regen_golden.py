@@ -53,8 +53,10 @@ def main(argv: list[str] | None = None) -> int:
     maps = mod.compute_maps()
     elapsed = time.perf_counter() - t
     new = reference_arrays(mod, maps)
-    print(f"golden case computed in {elapsed:.1f} s: grid {maps['gamma'].shape} (x, z), "
-          f"band {new['band_hz'][0] / 1e6:.2f}–{new['band_hz'][1] / 1e6:.2f} MHz")
+    print(
+        f"golden case computed in {elapsed:.1f} s: grid {maps['gamma'].shape} (x, z), "
+        f"band {new['band_hz'][0] / 1e6:.2f}–{new['band_hz'][1] / 1e6:.2f} MHz"
+    )
     old = None
     if mod.GOLDEN.exists():
         with np.load(mod.GOLDEN) as f:

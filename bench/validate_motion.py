@@ -38,9 +38,11 @@ def main() -> None:
     bw = sc.band[1] - sc.band[0]
     vx, vz = np.linspace(-0.5, 0.5, 21), np.linspace(-0.2, 0.2, 9)
     dictionary = [fpcore.moving_fingerprint(fp, np.array([a, 0.0, b]), tau) for a in vx for b in vz]
-    print(f"fast-cylinder ({'full' if args.full else 'quick'}): {sc.probe.n_elements} elements, "
-          f"{sc.sequence.n_waves} plane waves at {sc.sequence.prf:.0f} Hz "
-          f"({(tau[-1] - tau[0]) * 1e3:.0f} ms per sequence); velocity dictionary {vx.size} × {vz.size}")
+    print(
+        f"fast-cylinder ({'full' if args.full else 'quick'}): {sc.probe.n_elements} elements, "
+        f"{sc.sequence.n_waves} plane waves at {sc.sequence.prf:.0f} Hz "
+        f"({(tau[-1] - tau[0]) * 1e3:.0f} ms per sequence); velocity dictionary {vx.size} × {vz.size}"
+    )
     for i in range(sc.n_frames):
         acq = sc.frame(i)
         tg = acq.ground_truth.target("cylinder")
@@ -54,17 +56,21 @@ def main() -> None:
             g = imager.gamma(pw, f)
             d = fpcore.detect(g, grid, lam, sc.probe.aperture[0], bw, sc.c0)[0]
             found[label] = d
-            print(f"  {label:>22}: γ_max {d.gamma_max:.3f}, C_γ {d.c_gamma:5.1f}, "
-                  f"error {np.linalg.norm(np.array(d.position_m) - r) * 1e3:.2f} mm")
+            print(
+                f"  {label:>22}: γ_max {d.gamma_max:.3f}, C_γ {d.c_gamma:5.1f}, "
+                f"error {np.linalg.norm(np.array(d.position_m) - r) * 1e3:.2f} mm"
+            )
         ratio = found["motion-aware, true v"].gamma_max / found["static fingerprint"].gamma_max
         t0 = time.perf_counter()
         res = Dictionary(dictionary).evaluate(imager, pw)
         dt = time.perf_counter() - t0
         idx = np.unravel_index(int(np.argmax(res.gamma_max)), grid.shape)
         v_est = np.array(res.states[int(res.best[idx])]["velocity_m_s"])
-        print(f"  γ gain ×{ratio:.1f}; dictionary ({len(dictionary)} velocities, {dt:.2f} s): v = "
-              f"({v_est[0]:.3f}, {v_est[2]:.3f}) m/s at the peak, error {np.linalg.norm(v_est - v):.3f} m/s, "
-              f"peak {np.linalg.norm(grid.position(idx) - r) * 1e3:.2f} mm from the truth")
+        print(
+            f"  γ gain ×{ratio:.1f}; dictionary ({len(dictionary)} velocities, {dt:.2f} s): v = "
+            f"({v_est[0]:.3f}, {v_est[2]:.3f}) m/s at the peak, error {np.linalg.norm(v_est - v):.3f} m/s, "
+            f"peak {np.linalg.norm(grid.position(idx) - r) * 1e3:.2f} mm from the truth"
+        )
 
 
 if __name__ == "__main__":

@@ -53,8 +53,9 @@ def iid_pfas(n: int, progress: Progress) -> list[float]:
     return pfas
 
 
-def scenario_maps(name: str, n_maps: int, with_targets: bool, progress: Progress, frames_per_seed: int = 8,
-                  frame_step: int = 2) -> list[dict]:
+def scenario_maps(
+    name: str, n_maps: int, with_targets: bool, progress: Progress, frames_per_seed: int = 8, frame_step: int = 2
+) -> list[dict]:
     """Per frame: each target's fingerprint's top detection (PFA, position error if a truth exists)."""
     rows: list[dict] = []
     seeds = int(np.ceil(n_maps / frames_per_seed))
@@ -83,11 +84,22 @@ def scenario_maps(name: str, n_maps: int, with_targets: bool, progress: Progress
                 if not with_targets and tname != next(iter(fps)):
                     continue  # one fingerprint per fog map: independent maps only
                 lev, vis = level.level(acq, pw, fp, res)
-                det = detect(imager.gamma(pw, fp), grid, lam, ap, bw, sc.c0, name=tname, level=lev, visible=vis,
-                             max_pfa=None)[0]
+                det = detect(
+                    imager.gamma(pw, fp), grid, lam, ap, bw, sc.c0, name=tname, level=lev, visible=vis, max_pfa=None
+                )[0]
                 err = float(np.linalg.norm(np.array(det.position_m) - truth[tname])) if tname in truth else None
-                rows.append({"scenario": name, "seed": seed, "frame": i, "target": tname, "pfa": det.pfa,
-                             "error_m": err, "c_gamma": det.c_gamma, "c_local": det.c_local})
+                rows.append(
+                    {
+                        "scenario": name,
+                        "seed": seed,
+                        "frame": i,
+                        "target": tname,
+                        "pfa": det.pfa,
+                        "error_m": err,
+                        "c_gamma": det.c_gamma,
+                        "c_local": det.c_local,
+                    }
+                )
             progress.advance(task)
     return rows
 
@@ -106,6 +118,8 @@ def pp_plot(path: Path, sets: dict[str, list[float]]) -> None:
     fig, ax = plt.subplots(figsize=(5.5, 5.5))
     a = np.logspace(-3, 0, 60)
     for label, pfas in sets.items():
+        if not pfas:
+            continue
         p = np.asarray(pfas)
         ax.loglog(a, [max(float(np.mean(p < x)), 1e-4) for x in a], label=f"{label} (n = {p.size})")
     ax.loglog(a, a, "k--", lw=1, label="calibrated: rate = α")
@@ -126,18 +140,36 @@ def main() -> None:
     ap.add_argument("--maps2d", type=int, default=160, help="2-D fog-only maps")
     ap.add_argument("--maps3d", type=int, default=48, help="3-D fog-only maps")
     ap.add_argument("--power", type=int, default=16, help="frames with targets per scenario")
+    ap.add_argument(
+        "--frames-per-seed",
+        type=int,
+        default=8,
+        help="fog-only frames per simulated medium (frames of one medium are correlated)",
+    )
     ap.add_argument("--png", default="out/bench/pfa_pp.png")
     args = ap.parse_args()
     t0 = time.perf_counter()
     with Progress() as progress:
-        null = {"i.i.d. (paper S6)": iid_pfas(args.iid, progress),
-                "2-D fog only": [r["pfa"] for r in scenario_maps("sinking-cylinder", args.maps2d, False, progress)],
-                "3-D fog only": [r["pfa"] for r in scenario_maps("sinking-sphere", args.maps3d, False, progress)]}
-        power = {name: scenario_maps(name, args.power, True, progress, frames_per_seed=args.power, frame_step=1)
-                 for name in ("sinking-cylinder", "sinking-sphere")}
+        fps_ = args.frames_per_seed
+        null = {
+            "i.i.d. (paper S6)": iid_pfas(args.iid, progress),
+            "2-D fog only": [
+                r["pfa"] for r in scenario_maps("sinking-cylinder", args.maps2d, False, progress, frames_per_seed=fps_)
+            ],
+            "3-D fog only": [
+                r["pfa"] for r in scenario_maps("sinking-sphere", args.maps3d, False, progress, frames_per_seed=fps_)
+            ],
+        }
+        power = {
+            name: scenario_maps(name, args.power, True, progress, frames_per_seed=args.power, frame_step=1)
+            for name in ("sinking-cylinder", "sinking-sphere")
+            if args.power > 0
+        }
     print("\nNull calibration: fraction of target-free maps whose top peak reports PFA < α (calibrated: ≤ α)")
     print(f"{'set':22s} " + " ".join(f"α={a:<6g}" for a in ALPHAS) + f"  detections (PFA < {DEFAULT_MAX_PFA:g})")
     for label, pfas in null.items():
+        if not pfas:
+            continue
         det = float(np.mean(np.asarray(pfas) < DEFAULT_MAX_PFA))
         print(f"{label:22s} " + " ".join(f"{r:<8.3f}" for r in rates(pfas)) + f"  {det:.3f} of {len(pfas)}")
     print(f"\nDetection power on the default grid (whole record, no depth window), PFA < {DEFAULT_MAX_PFA:g}:")
@@ -147,9 +179,11 @@ def main() -> None:
             hit = [r["pfa"] < DEFAULT_MAX_PFA and r["error_m"] is not None and r["error_m"] < 1e-3 for r in rs]
             errs = np.array([r["error_m"] for r in rs if r["error_m"] is not None])
             med = {k: np.median([r[k] for r in rs]) for k in ("pfa", "c_gamma", "c_local")}
-            print(f"  {name:17s} {tname:10s} detected within 1 mm: {sum(hit)}/{len(rs)}; median error "
-                  f"{np.median(errs) * 1e3:.2f} mm; median PFA {med['pfa']:.1e}; median C_γ {med['c_gamma']:.1f}, "
-                  f"local {med['c_local']:.1f}")
+            print(
+                f"  {name:17s} {tname:10s} detected within 1 mm: {sum(hit)}/{len(rs)}; median error "
+                f"{np.median(errs) * 1e3:.2f} mm; median PFA {med['pfa']:.1e}; median C_γ {med['c_gamma']:.1f}, "
+                f"local {med['c_local']:.1f}"
+            )
     pp_plot(Path(args.png), null)
     print(f"\nwrote {args.png} ({time.perf_counter() - t0:.0f} s)")
 

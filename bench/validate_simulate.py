@@ -39,16 +39,21 @@ def faran_checks() -> None:
     ka = np.linspace(0.5, 60, 120)[:, None]
     n = np.arange(0, 90)[None, :]
     lossless = sim.Elastic(5700.0, 2700.0, 2000.0)
-    for name, coef in (("sphere", sim.sphere_coefficients(ka, n, lossless)),
-                       ("cylinder", sim.cylinder_coefficients(ka, n, lossless))):
+    for name, coef in (
+        ("sphere", sim.sphere_coefficients(ka, n, lossless)),
+        ("cylinder", sim.cylinder_coefficients(ka, n, lossless)),
+    ):
         print(f"  {name:8s}: max | |1 + 2A_n| − 1 | = {np.max(np.abs(np.abs(1 + 2 * coef) - 1)):.1e} (lossless ⇒ 0)")
     heavy = sim.Elastic(5700.0e8, 2700.0, 2000.0)
     err = np.max(np.abs(sim.sphere_coefficients(ka, n, heavy) - sim.rigid_sphere_coefficients(ka, n)))
     print(f"  rigid limit (ρ × 1e8): max |A_n − A_n^rigid| = {err:.1e}")
     ka0, n0 = np.array([[0.03]]), np.arange(2)[None, :]
     c_eq = np.sqrt(lossless.c_p**2 - 4 * lossless.c_t**2 / 3)
-    rel = np.max(np.abs(sim.sphere_coefficients(ka0, n0, lossless)
-                        / sim.fluid_sphere_coefficients(ka0, n0, 5.7, c_eq / 1500) - 1))
+    rel = np.max(
+        np.abs(
+            sim.sphere_coefficients(ka0, n0, lossless) / sim.fluid_sphere_coefficients(ka0, n0, 5.7, c_eq / 1500) - 1
+        )
+    )
     print(f"  ka = 0.03: monopole/dipole vs equivalent fluid (bulk modulus): rel. diff {rel:.1e}")
 
 
@@ -64,13 +69,23 @@ def mean_free_path() -> None:
         psi = sim.coherent_wave(np.random.default_rng(1), k, t, density, width, thick, z, dim, n_real=n_real)
         slope = np.polyfit(z, np.log(np.abs(psi)), 1)[0]
         ls_m = -1 / (2 * slope)
-        print(f"  {dim}D: input ℓ_s = {ls:.2f} λ (n = {density:.3f}/λ^{dim}, resonant scatterers, "
-              f"{int(density * width ** (dim - 1) * thick)} per slab, {n_real} realisations): "
-              f"measured ℓ_s = {ls_m:.2f} λ ({100 * (ls_m / ls - 1):+.1f} %), {time.perf_counter() - t0:.1f} s")
+        print(
+            f"  {dim}D: input ℓ_s = {ls:.2f} λ (n = {density:.3f}/λ^{dim}, resonant scatterers, "
+            f"{int(density * width ** (dim - 1) * thick)} per slab, {n_real} realisations): "
+            f"measured ℓ_s = {ls_m:.2f} λ ({100 * (ls_m / ls - 1):+.1f} %), {time.perf_counter() - t0:.1f} s"
+        )
 
 
-def _pw_confocal(h: np.ndarray, probe: Probe, sines: np.ndarray, freqs: np.ndarray, c0: float,
-                 spec: np.ndarray, pixels: np.ndarray, s_out: np.ndarray) -> np.ndarray:
+def _pw_confocal(
+    h: np.ndarray,
+    probe: Probe,
+    sines: np.ndarray,
+    freqs: np.ndarray,
+    c0: float,
+    spec: np.ndarray,
+    pixels: np.ndarray,
+    s_out: np.ndarray,
+) -> np.ndarray:
     """Confocal intensity (docs/design.md §4.3) with a Hann-apodised receive aperture, at given pixels (P, 3)."""
     k = 2 * np.pi * freqs / c0
     u = probe.positions
@@ -109,9 +124,12 @@ def contrast_vs_depth() -> None:
             bins = win.band_bins(band)
             f = win.freqs()[bins]
             spec = band.spectrum(f)
-            bgs = [sim.DiffuseBackground(layer, probe.positions, seq.sines, win, band, c0, dim, radius,
-                                         np.random.default_rng(s)).next()
-                   for s in range(4)]
+            bgs = [
+                sim.DiffuseBackground(
+                    layer, probe.positions, seq.sines, win, band, c0, dim, radius, np.random.default_rng(s)
+                ).next()
+                for s in range(4)
+            ]
             depths = np.arange(1, 6) * layer.ls
             cs, spread = [], []
             for d in depths:
@@ -126,9 +144,11 @@ def contrast_vs_depth() -> None:
                 cs.append(i_t / i_m)
             raw = np.polyfit(depths, np.log(cs), 1)[0]
             slope = np.polyfit(depths, np.log(np.array(cs) / np.array(spread)), 1)[0]
-            print(f"  {dim}D, envelope={envelope:9s}: C_I ∝ exp(−z/ℓ_C), ℓ_C = {-1 / slope * 1e3:.2f} mm "
-                  f"= {-1 / (slope * layer.ls):.2f} ℓ_s (input ℓ_s = 1.80 mm, ℓ_ext = {layer.l_ext * 1e3:.2f} mm); "
-                  f"with the point target's free-space 1/r spreading left in: {-1 / (raw * layer.ls):.2f} ℓ_s")
+            print(
+                f"  {dim}D, envelope={envelope:9s}: C_I ∝ exp(−z/ℓ_C), ℓ_C = {-1 / slope * 1e3:.2f} mm "
+                f"= {-1 / (slope * layer.ls):.2f} ℓ_s (input ℓ_s = 1.80 mm, ℓ_ext = {layer.l_ext * 1e3:.2f} mm); "
+                f"with the point target's free-space 1/r spreading left in: {-1 / (raw * layer.ls):.2f} ℓ_s"
+            )
 
 
 def sphere_richness(sc: sim.Scenario, imager: fpcore.Imager, verbose: bool = True) -> dict[str, fpcore.Fingerprint]:
@@ -147,9 +167,11 @@ def sphere_richness(sc: sim.Scenario, imager: fpcore.Imager, verbose: bool = Tru
         fp = fpcore.from_calibration(cal, r0, pw.out_sines, sc.band, None, diameter=truth.diameter, name=name)
         fps[name] = fp
         if verbose:
-                print(f"  {name} (d = {truth.diameter * 1e3:.0f} mm, r0 = {np.round(r0 * 1e3, 2)} mm): "
-                  f"echo above −20 dB for {(t[below[-1]] - peak) * 1e6:.0f} µs after the specular peak; "
-                  f"N_T = {fp.n_t:.1f}, N_S = {fp.n_s:.1f} (σ_p ≥ 0.4 σ_1, mean over the band)")
+            print(
+                f"  {name} (d = {truth.diameter * 1e3:.0f} mm, r0 = {np.round(r0 * 1e3, 2)} mm): "
+                f"echo above −20 dB for {(t[below[-1]] - peak) * 1e6:.0f} µs after the specular peak; "
+                f"N_T = {fp.n_t:.1f}, N_S = {fp.n_s:.1f} (σ_p ≥ 0.4 σ_1, mean over the band)"
+            )
     return fps
 
 
@@ -161,14 +183,18 @@ def background_stats(sc: sim.Scenario) -> None:
     v1 = bg.next()
     # Frequency correlation of M: |⟨M(f) M*(f + Δf)⟩| / ⟨|M|²⟩.
     df = sc.freqs[1] - sc.freqs[0]
-    c = [abs(np.vdot(v0[:-j or None], v0[j:])) / np.vdot(v0, v0).real for j in range(0, 40)]
+    c = [abs(np.vdot(v0[: -j or None], v0[j:])) / np.vdot(v0, v0).real for j in range(0, 40)]
     j_half = next((j for j, x in enumerate(c) if x < 0.5), len(c))
-    print(f"  correlation frequency δf (half width) ≈ {j_half * df / 1e3:.0f} kHz → N_f = Δf/δf ≈ "
-          f"{(sc.band[1] - sc.band[0]) / max(j_half * df, df):.0f} grains in the band")
+    print(
+        f"  correlation frequency δf (half width) ≈ {j_half * df / 1e3:.0f} kHz → N_f = Δf/δf ≈ "
+        f"{(sc.band[1] - sc.band[0]) / max(j_half * df, df):.0f} grains in the band"
+    )
     rho = abs(np.vdot(v0, v1)) / (np.linalg.norm(v0) * np.linalg.norm(v1))
     w = bg.envelope.astype(np.float64) ** 2
-    print(f"  frame-to-frame correlation of M: {rho:.2f} (DWS model, intensity-weighted g1 = "
-          f"{np.sum(w * bg.g1) / np.sum(w):.2f}; grain displacement {sc.layer.frame_displacement * 1e6:.0f} µm)")
+    print(
+        f"  frame-to-frame correlation of M: {rho:.2f} (DWS model, intensity-weighted g1 = "
+        f"{np.sum(w * bg.g1) / np.sum(w):.2f}; grain displacement {sc.layer.frame_displacement * 1e6:.0f} µm)"
+    )
     pl = sc.placements["sphere1"]
     h = sc._target_h(pl, pl.position(0), True)
     print(f"  |corr(M, target echo)| = {abs(np.vdot(h, v0)) / (np.linalg.norm(h) * np.linalg.norm(v0)):.3f}")
@@ -191,10 +217,12 @@ def timings() -> None:
             for i in range(1, 1 + n):
                 sc.frame(i)
             t_frame = (time.perf_counter() - t0) / n
-            print(f"  {name:15s} {'quick' if quick else 'full ':5s}: {sc.probe.n_elements:4d} el × "
-                  f"{sc.sequence.n_waves:2d} pw × {sc.n_samples:4d} samples (fs {sc.fs / 1e6:.1f} MHz) = "
-                  f"{sc.frame_nbytes / 1e6:5.1f} MB/frame, {sc.n_frames} frames; precompute {t_static:5.1f} s, "
-                  f"first frame {t_first:4.1f} s, then {t_frame:4.2f} s/frame")
+            print(
+                f"  {name:15s} {'quick' if quick else 'full ':5s}: {sc.probe.n_elements:4d} el × "
+                f"{sc.sequence.n_waves:2d} pw × {sc.n_samples:4d} samples (fs {sc.fs / 1e6:.1f} MHz) = "
+                f"{sc.frame_nbytes / 1e6:5.1f} MB/frame, {sc.n_frames} frames; precompute {t_static:5.1f} s, "
+                f"first frame {t_first:4.1f} s, then {t_frame:4.2f} s/frame"
+            )
 
 
 def headline(quick: bool, frames: list[int]) -> None:
@@ -207,8 +235,9 @@ def headline(quick: bool, frames: list[int]) -> None:
     section(f"7. Sinking-sphere headline ({'quick' if quick else 'full'}; fingerprint core, grid z ≥ 20 mm)")
     mesh = np.meshgrid(*grid_c.axes, indexing="ij")
     lam = sc.c0 / sc.pulse.centre
-    n_grains = grid.size / ((lam * 25e-3 / 10.9e-3) ** 2 * (sc.c0 / (2 * (sc.band[1] - sc.band[0])))
-                            / np.prod(grid.spacing))
+    n_grains = grid.size / (
+        (lam * 25e-3 / 10.9e-3) ** 2 * (sc.c0 / (2 * (sc.band[1] - sc.band[0]))) / np.prod(grid.spacing)
+    )
     for i in frames:
         acq = sc.frame(i)
         pw = imager.plane_waves(acq)
@@ -224,12 +253,16 @@ def headline(quick: bool, frames: list[int]) -> None:
             d2 = sum((m - c) ** 2 for m, c in zip(mesh, r, strict=True))
             slab = (np.abs(mesh[2] - cap[2]) < 1.5e-3) & (d2 > (a + 1e-3) ** 2)
             c_cap = conf[grid_c.nearest_index(cap)] / conf[slab].mean()
-            print(f"  frame {i:2d} {tg.name}: γ peak {np.linalg.norm(rp - r) * 1e3:4.2f} mm from truth, "
-                  f"C_γ = {cg:5.2f}, C = (γ/γ_M)² = {cp:6.1f}, PFA(L ≈ {n_grains:.0f}) = {pfa(cp, n_grains):.1e} | "
-                  f"confocal: centre {c_centre:4.2f}, cap {c_cap:4.2f} (vs same-depth fog)")
+            print(
+                f"  frame {i:2d} {tg.name}: γ peak {np.linalg.norm(rp - r) * 1e3:4.2f} mm from truth, "
+                f"C_γ = {cg:5.2f}, C = (γ/γ_M)² = {cp:6.1f}, PFA(L ≈ {n_grains:.0f}) = {pfa(cp, n_grains):.1e} | "
+                f"confocal: centre {c_centre:4.2f}, cap {c_cap:4.2f} (vs same-depth fog)"
+            )
             fp = fps[tg.name]
-            print(f"           gain: G ≈ N_S·N_T = {fp.n_s * fp.n_t:5.0f} (paper eq. G) vs measured C_γ/C_I = "
-                  f"{cg / c_centre:5.1f} (C_I at the centre), {cg / c_cap:4.1f} (C_I at the cap)")
+            print(
+                f"           gain: G ≈ N_S·N_T = {fp.n_s * fp.n_t:5.0f} (paper eq. G) vs measured C_γ/C_I = "
+                f"{cg / c_centre:5.1f} (C_I at the centre), {cg / c_cap:4.1f} (C_I at the cap)"
+            )
 
 
 def lesion() -> None:
@@ -238,17 +271,20 @@ def lesion() -> None:
     grid = sc.roi.grid()
     im = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
     cal = sc.calibration("marker")
-    fp = fpcore.from_calibration(cal, cal.ground_truth.r0, im.plane_waves(cal).out_sines, sc.band,
-                                 None, diameter=cal.ground_truth.diameter)
+    fp = fpcore.from_calibration(
+        cal, cal.ground_truth.r0, im.plane_waves(cal).out_sines, sc.band, None, diameter=cal.ground_truth.diameter
+    )
     acq = sc.frame(0)
     pw = im.plane_waves(acq)
     g, conf = im.gamma(pw, fp), im.confocal(pw)
     r = acq.ground_truth.target("marker").position
     rp = grid.position(np.unravel_index(np.argmax(g), g.shape))
     rc = grid.position(np.unravel_index(np.argmax(conf), conf.shape))
-    print(f"  N_S = {fp.n_s:.1f}, N_T = {fp.n_t:.1f}; γ peak {np.linalg.norm(rp - r) * 1e3:.2f} mm from truth, "
-          f"C_γ = {contrasts(g, grid, r, 1.5e-3)[0]:.1f}; confocal C = {contrasts(conf, grid, r, 1.5e-3)[0]:.2f}, "
-          f"confocal max {np.linalg.norm(rc - r) * 1e3:.1f} mm from truth")
+    print(
+        f"  N_S = {fp.n_s:.1f}, N_T = {fp.n_t:.1f}; γ peak {np.linalg.norm(rp - r) * 1e3:.2f} mm from truth, "
+        f"C_γ = {contrasts(g, grid, r, 1.5e-3)[0]:.1f}; confocal C = {contrasts(conf, grid, r, 1.5e-3)[0]:.2f}, "
+        f"confocal max {np.linalg.norm(rc - r) * 1e3:.1f} mm from truth"
+    )
 
 
 def main() -> None:

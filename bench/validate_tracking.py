@@ -36,8 +36,16 @@ from fpcore.tracking import Tracker, TrackerConfig
 from services.units import parse_length, parse_range
 
 
-def run(name: str, quick: bool, n_frames: int | None, z_range: tuple[float, float] | None, spacing: float | None,
-        overrides: dict[str, Any], integrate: int = 1, use_roi: bool = False) -> dict[str, Any]:
+def run(
+    name: str,
+    quick: bool,
+    n_frames: int | None,
+    z_range: tuple[float, float] | None,
+    spacing: float | None,
+    overrides: dict[str, Any],
+    integrate: int = 1,
+    use_roi: bool = False,
+) -> dict[str, Any]:
     """Simulate, image, track over the scenario's region of interest (depths `z_range` if given);
     returns per-target rows and the mean confocal image."""
     sc = scenario(name, quick=quick, seed=0, **overrides)
@@ -54,16 +62,19 @@ def run(name: str, quick: bool, n_frames: int | None, z_range: tuple[float, floa
     lam = sc.c0 / sc.probe.centre_frequency
     bw = sc.band[1] - sc.band[0]
     aperture = sc.probe.aperture[0]
-    tracker = Tracker(grid, lam, aperture, bw, sc.c0, TrackerConfig(max_tracks_per_map=1,
-                                                                      integrate_frames=integrate))
+    tracker = Tracker(grid, lam, aperture, bw, sc.c0, TrackerConfig(max_tracks_per_map=1, integrate_frames=integrate))
     rows: dict[str, list[dict[str, Any]]] = {t: [] for t in sc.target_names}
     conf_sum = np.zeros(grid.shape, np.float64)
     t_start = time.perf_counter()
-    print(f"{name} ({'quick' if quick else 'full'}), {n} frames, grid {grid.shape} "
-          f"(z {z_range[0] * 1e3:.1f}–{z_range[1] * 1e3:.1f} mm), overrides {overrides or 'none'}, "
-          f"tracker integrates {integrate} frame(s)")
-    print(f"{'frame':>5} {'target':>10} {'track err (mm)':>15} {'argmax err (mm)':>16} {'CR radius (mm)':>15} "
-          f"{'C_γ':>6} {'id':>3} {'status':>10} {'detected':>8}")
+    print(
+        f"{name} ({'quick' if quick else 'full'}), {n} frames, grid {grid.shape} "
+        f"(z {z_range[0] * 1e3:.1f}–{z_range[1] * 1e3:.1f} mm), overrides {overrides or 'none'}, "
+        f"tracker integrates {integrate} frame(s)"
+    )
+    print(
+        f"{'frame':>5} {'target':>10} {'track err (mm)':>15} {'argmax err (mm)':>16} {'CR radius (mm)':>15} "
+        f"{'C_γ':>6} {'id':>3} {'status':>10} {'detected':>8}"
+    )
     for i in range(n):
         acq = sc.frame(i)
         pw = imager.plane_waves(acq)
@@ -76,29 +87,56 @@ def run(name: str, quick: bool, n_frames: int | None, z_range: tuple[float, floa
             argmax = grid.position(np.unravel_index(int(np.argmax(maps[t])), grid.shape))
             dets = fpcore.detect(maps[t], grid, lam, aperture, bw, sc.c0, name=t, null=nulls[t])
             st = states.get(t)
-            row: dict[str, Any] = {"frame": i, "truth_m": r.tolist(), "argmax_m": argmax.tolist(),
-                                   "argmax_err_m": float(np.linalg.norm(argmax - r)),
-                                   "detected": bool(dets) and float(np.linalg.norm(np.array(dets[0].position_m) - r))
-                                   < 1e-3, "track_m": None, "track_err_m": None, "track_id": None,
-                                   "cr_radius_m": None, "c_gamma": None, "status": None}
+            row: dict[str, Any] = {
+                "frame": i,
+                "truth_m": r.tolist(),
+                "argmax_m": argmax.tolist(),
+                "argmax_err_m": float(np.linalg.norm(argmax - r)),
+                "detected": bool(dets) and float(np.linalg.norm(np.array(dets[0].position_m) - r)) < 1e-3,
+                "track_m": None,
+                "track_err_m": None,
+                "track_id": None,
+                "cr_radius_m": None,
+                "c_gamma": None,
+                "status": None,
+            }
             if st is not None:
                 pos = np.array(st.position_m)
                 res = diffraction_resolution(lam, aperture, max(pos[2], lam))
                 d_lat, d_ax = cramer_rao_precision(lam, res, st.c_gamma)
-                cr = float(np.sqrt((sc.dim - 1) * d_lat ** 2 + d_ax ** 2))  # eq. loc, per lateral axis + axial
-                row.update(track_m=pos.tolist(), track_err_m=float(np.linalg.norm(pos - r)), track_id=st.track_id,
-                           cr_radius_m=cr, c_gamma=st.c_gamma, sigma_m=st.precision_m, status=st.status)
+                cr = float(np.sqrt((sc.dim - 1) * d_lat**2 + d_ax**2))  # eq. loc, per lateral axis + axial
+                row.update(
+                    track_m=pos.tolist(),
+                    track_err_m=float(np.linalg.norm(pos - r)),
+                    track_id=st.track_id,
+                    cr_radius_m=cr,
+                    c_gamma=st.c_gamma,
+                    sigma_m=st.precision_m,
+                    status=st.status,
+                )
             rows[t].append(row)
             te = row["track_err_m"]
-            print(f"{i:5d} {t:>10} {te * 1e3 if te is not None else float('nan'):15.2f} "
-                  f"{row['argmax_err_m'] * 1e3:16.2f} {(row['cr_radius_m'] or float('nan')) * 1e3:15.2f} "
-                  f"{row['c_gamma'] or float('nan'):6.1f} {row['track_id'] or '-':>3} {row['status'] or '-':>10} "
-                  f"{'yes' if row['detected'] else 'no':>8}")
+            print(
+                f"{i:5d} {t:>10} {te * 1e3 if te is not None else float('nan'):15.2f} "
+                f"{row['argmax_err_m'] * 1e3:16.2f} {(row['cr_radius_m'] or float('nan')) * 1e3:15.2f} "
+                f"{row['c_gamma'] or float('nan'):6.1f} {row['track_id'] or '-':>3} {row['status'] or '-':>10} "
+                f"{'yes' if row['detected'] else 'no':>8}"
+            )
     wall = time.perf_counter() - t_start
-    return {"scenario": name, "quick": quick, "dim": sc.dim, "frames": n, "wall_s": wall, "grid": grid,
-            "z_range": z_range, "confocal": conf_sum / n, "rows": rows,
-            "z_surface_m": sc.layer.z_surface if sc.layer else None,
-            "diameters_m": {p: pl.target.diameter for p, pl in sc.placements.items()}, "overrides": overrides}
+    return {
+        "scenario": name,
+        "quick": quick,
+        "dim": sc.dim,
+        "frames": n,
+        "wall_s": wall,
+        "grid": grid,
+        "z_range": z_range,
+        "confocal": conf_sum / n,
+        "rows": rows,
+        "z_surface_m": sc.layer.z_surface if sc.layer else None,
+        "diameters_m": {p: pl.target.diameter for p, pl in sc.placements.items()},
+        "overrides": overrides,
+    }
 
 
 def summarise(res: dict[str, Any]) -> dict[str, Any]:
@@ -112,23 +150,34 @@ def summarise(res: dict[str, Any]) -> dict[str, Any]:
         cr = np.array([r["cr_radius_m"] if r["cr_radius_m"] is not None else np.nan for r in rs])
         ids = sorted({r["track_id"] for r in rs if r["track_id"] is not None})
         every = bool(np.isfinite(err).all())
-        rms = float(np.sqrt(np.nanmean(err ** 2))) if np.isfinite(err).any() else float("nan")
+        rms = float(np.sqrt(np.nanmean(err**2))) if np.isfinite(err).any() else float("nan")
         mean_cr = float(np.nanmean(cr)) if np.isfinite(cr).any() else float("nan")
-        s = {"frames_with_track": int(np.isfinite(err).sum()), "frames": len(rs), "ids": ids,
-             "track_rms_m": rms, "track_max_m": float(np.nanmax(err)) if np.isfinite(err).any() else float("nan"),
-             "mean_cr_radius_m": mean_cr, "argmax_rms_m": float(np.sqrt(np.mean(arg ** 2))),
-             "argmax_max_m": float(arg.max()), "argmax_frames_over_1mm": int((arg > 1e-3).sum()),
-             "frames_detected": int(sum(r["detected"] for r in rs))}
-        s["checks"] = {"track point every frame": every,
-                       "RMS ≤ 1.5 × mean CR precision": bool(rms <= 1.5 * mean_cr),
-                       "no frame > 1 mm off": bool(every and s["track_max_m"] <= 1e-3),
-                       "one id through the sequence": len(ids) == 1}
+        s = {
+            "frames_with_track": int(np.isfinite(err).sum()),
+            "frames": len(rs),
+            "ids": ids,
+            "track_rms_m": rms,
+            "track_max_m": float(np.nanmax(err)) if np.isfinite(err).any() else float("nan"),
+            "mean_cr_radius_m": mean_cr,
+            "argmax_rms_m": float(np.sqrt(np.mean(arg**2))),
+            "argmax_max_m": float(arg.max()),
+            "argmax_frames_over_1mm": int((arg > 1e-3).sum()),
+            "frames_detected": int(sum(r["detected"] for r in rs)),
+        }
+        s["checks"] = {
+            "track point every frame": every,
+            "RMS ≤ 1.5 × mean CR precision": bool(rms <= 1.5 * mean_cr),
+            "no frame > 1 mm off": bool(every and s["track_max_m"] <= 1e-3),
+            "one id through the sequence": len(ids) == 1,
+        }
         out[t] = s
-        print(f"{t}: track point in {s['frames_with_track']}/{len(rs)} frames, ids {ids}; track RMS "
-              f"{rms * 1e3:.2f} mm, max {s['track_max_m'] * 1e3:.2f} mm; mean Cramér–Rao radius {mean_cr * 1e3:.2f} mm "
-              f"(RMS/CR = {rms / mean_cr:.2f}) | per-frame argmax: RMS {s['argmax_rms_m'] * 1e3:.2f} mm, max "
-              f"{s['argmax_max_m'] * 1e3:.2f} mm, {s['argmax_frames_over_1mm']}/{len(rs)} frames > 1 mm off | "
-              f"detected (PFA < 1e-3, within 1 mm) in {s['frames_detected']}/{len(rs)} frames")
+        print(
+            f"{t}: track point in {s['frames_with_track']}/{len(rs)} frames, ids {ids}; track RMS "
+            f"{rms * 1e3:.2f} mm, max {s['track_max_m'] * 1e3:.2f} mm; mean Cramér–Rao radius {mean_cr * 1e3:.2f} mm "
+            f"(RMS/CR = {rms / mean_cr:.2f}) | per-frame argmax: RMS {s['argmax_rms_m'] * 1e3:.2f} mm, max "
+            f"{s['argmax_max_m'] * 1e3:.2f} mm, {s['argmax_frames_over_1mm']}/{len(rs)} frames > 1 mm off | "
+            f"detected (PFA < 1e-3, within 1 mm) in {s['frames_detected']}/{len(rs)} frames"
+        )
         for k, ok in s["checks"].items():
             print(f"    {'PASS' if ok else 'FAIL'}  {k}")
     return out
@@ -146,12 +195,14 @@ def figure(path: str | Path, res: dict[str, Any]) -> None:
             h["truth"].append({"name": t, "position_m": r["truth_m"], "diameter_m": res["diameters_m"][t]})
             h["argmax"].append({"name": t, "position_m": r["argmax_m"]})
             if r["track_m"] is not None:
-                h["tracks"].append({"id": r["track_id"], "fingerprint": t, "position_m": r["track_m"],
-                                    "cr_radius_m": r["cr_radius_m"]})
+                h["tracks"].append(
+                    {"id": r["track_id"], "fingerprint": t, "position_m": r["track_m"], "cr_radius_m": r["cr_radius_m"]}
+                )
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     surface = f", suspension surface at z = {res['z_surface_m'] * 1e3:.0f} mm" if res["z_surface_m"] else ""
-    tracks_over_confocal(path, res["grid"], res["confocal"], [frames[i] for i in sorted(frames)],
-                         title=f"{res['scenario']}{surface}")
+    tracks_over_confocal(
+        path, res["grid"], res["confocal"], [frames[i] for i in sorted(frames)], title=f"{res['scenario']}{surface}"
+    )
 
 
 def main() -> None:
@@ -159,14 +210,29 @@ def main() -> None:
     ap.add_argument("--scenario", default="sinking-sphere", choices=("sinking-sphere", "sinking-cylinder"))
     ap.add_argument("--full", action="store_true", help="full-size scenario (slow in 3D)")
     ap.add_argument("--frames", type=int, default=None, help="number of frames (default: all)")
-    ap.add_argument("--roi", action="store_true", help="image the scenario's region of interest (z 20–31 mm) "
-                                                       "instead of the whole record")
-    ap.add_argument("--z", type=lambda t: parse_range(t, "--z"), default=None,
-                    help="ROI depth range A:B with units (implies an ROI)")
-    ap.add_argument("--spacing", type=lambda t: parse_length(t, "--spacing"), default=None,
-                    help="grid spacing with units (default 0.25mm in 3D, 0.1mm in 2D)")
-    ap.add_argument("--sink", type=lambda t: parse_range(t, "--sink"), default=None,
-                    help="settling range below the surface A:B with units, e.g. 8mm:9.5mm")
+    ap.add_argument(
+        "--roi",
+        action="store_true",
+        help="image the scenario's region of interest (z 20–31 mm) instead of the whole record",
+    )
+    ap.add_argument(
+        "--z",
+        type=lambda t: parse_range(t, "--z"),
+        default=None,
+        help="ROI depth range A:B with units (implies an ROI)",
+    )
+    ap.add_argument(
+        "--spacing",
+        type=lambda t: parse_length(t, "--spacing"),
+        default=None,
+        help="grid spacing with units (default 0.25mm in 3D, 0.1mm in 2D)",
+    )
+    ap.add_argument(
+        "--sink",
+        type=lambda t: parse_range(t, "--sink"),
+        default=None,
+        help="settling range below the surface A:B with units, e.g. 8mm:9.5mm",
+    )
     ap.add_argument("--gain", type=float, default=None, help="multiple-scattering background gain")
     ap.add_argument("--integrate", type=int, default=1, help="tracker: search the mean of the last K γ-maps")
     ap.add_argument("--png", default=None, help="figure path (default out/tracking-<scenario>.png)")
@@ -177,17 +243,25 @@ def main() -> None:
         overrides["sink"] = args.sink
     if args.gain is not None:
         overrides["gain"] = args.gain
-    res = run(args.scenario, not args.full, args.frames, args.z, args.spacing, overrides,
-              args.integrate, args.roi)
+    res = run(args.scenario, not args.full, args.frames, args.z, args.spacing, overrides, args.integrate, args.roi)
     summary = summarise(res)
     png = args.png or f"out/tracking-{args.scenario}.png"
     figure(png, res)
     print(f"wrote {png}")
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps({"summary": summary, "rows": res["rows"], "frames": res["frames"],
-                                               "scenario": res["scenario"], "z_range_m": list(res["z_range"])},
-                                              indent=1))
+        Path(args.json).write_text(
+            json.dumps(
+                {
+                    "summary": summary,
+                    "rows": res["rows"],
+                    "frames": res["frames"],
+                    "scenario": res["scenario"],
+                    "z_range_m": list(res["z_range"]),
+                },
+                indent=1,
+            )
+        )
         print(f"wrote {args.json}")
 
 

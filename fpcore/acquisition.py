@@ -180,9 +180,7 @@ class Acquisition:
         rf = np.asarray(self.rf)
         expected = (self.probe.n_elements, self.sequence.n_waves)
         if rf.ndim != 3 or rf.shape[:2] != expected:
-            raise ValueError(
-                f"rf: expected shape (N_u={expected[0]}, N_theta={expected[1]}, N_t), got {rf.shape}"
-            )
+            raise ValueError(f"rf: expected shape (N_u={expected[0]}, N_theta={expected[1]}, N_t), got {rf.shape}")
         if not np.issubdtype(rf.dtype, np.number) or np.iscomplexobj(rf):
             raise ValueError(f"rf: expected a real numeric array, got dtype {rf.dtype}")
         if not np.all(np.isfinite(rf)):
@@ -226,8 +224,9 @@ class Acquisition:
         width; choose n_freq ≥ band width × (record + target echo duration)). The phase accounts for t0.
         """
         if not (0 <= f_min < f_max <= self.fs / 2):
-            raise ValueError(f"band: expected 0 <= f_min < f_max <= fs/2 = {self.fs / 2:g} Hz, "
-                             f"got [{f_min:g}, {f_max:g}]")
+            raise ValueError(
+                f"band: expected 0 <= f_min < f_max <= fs/2 = {self.fs / 2:g} Hz, got [{f_min:g}, {f_max:g}]"
+            )
         n_t = self.n_samples
         if pad < 1:
             raise ValueError(f"pad: expected an integer >= 1, got {pad}")
@@ -289,9 +288,15 @@ def _lattice_step(values: np.ndarray) -> float | None:
     return step
 
 
-def output_sines(probe: Probe, c0: float, f_max: float, n: int | None = None,
-                 s_max: float | None = None, field_width: tuple[float, float] | float | None = None,
-                 transmit_sines: np.ndarray | None = None) -> np.ndarray:
+def output_sines(
+    probe: Probe,
+    c0: float,
+    f_max: float,
+    n: int | None = None,
+    s_max: float | None = None,
+    field_width: tuple[float, float] | float | None = None,
+    transmit_sines: np.ndarray | None = None,
+) -> np.ndarray:
     """Output directions sampling the array's angular spectrum (docs/design.md §4.2).
 
     Per lateral dimension, sines evenly spread over [-s_max, s_max], s_max = min(0.95, c0/(2 pitch f_c))
@@ -331,7 +336,7 @@ def output_sines(probe: Probe, c0: float, f_max: float, n: int | None = None,
         return np.stack([sx, np.zeros(sx.size)], axis=1)
     sy = axis(1)
     yy, xx = np.meshgrid(sy, sx, indexing="ij")
-    keep = xx.ravel() ** 2 + yy.ravel() ** 2 < s_max ** 2 + 1e-12  # drop evanescent corners
+    keep = xx.ravel() ** 2 + yy.ravel() ** 2 < s_max**2 + 1e-12  # drop evanescent corners
     return np.stack([xx.ravel()[keep], yy.ravel()[keep]], axis=1)
 
 
@@ -369,5 +374,6 @@ def to_plane_waves(spec: Spectrum, out_sines: np.ndarray) -> PlaneWaveData:
     else:
         phase = np.exp(-1j * k[:, None, None] * (out @ pos[:, :2].T)[None]).astype(np.complex64)
         data = np.matmul(phase, spec.data)
-    return PlaneWaveData(np.ascontiguousarray(data, dtype=np.complex64), spec.freqs.copy(), out,
-                         spec.sequence.sines.copy(), spec.c0)
+    return PlaneWaveData(
+        np.ascontiguousarray(data, dtype=np.complex64), spec.freqs.copy(), out, spec.sequence.sines.copy(), spec.c0
+    )

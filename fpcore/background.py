@@ -53,7 +53,7 @@ def envelope_spectrum(data: np.ndarray) -> np.ndarray:
     n_t = 2 * n_f
     flat = np.ascontiguousarray(np.asarray(data).reshape(n_f, -1).T)  # FFT along the last, contiguous axis
     a = sfft.ifft(flat, n=n_t, axis=1, workers=-1)
-    e = (a.real ** 2 + a.imag ** 2) * n_t  # scale: Σ_t |a|² = Σ_f |R_f|² (Parseval)
+    e = (a.real**2 + a.imag**2) * n_t  # scale: Σ_t |a|² = Σ_f |R_f|² (Parseval)
     spec = sfft.rfft(e, axis=1, workers=-1)[:, :n_f]  # |a|² is real: ν ≥ 0 is all there is
     return np.ascontiguousarray(spec.T).reshape(data.shape).astype(np.complex64)
 
@@ -149,8 +149,9 @@ class NullLevel:
     node is not searched (`visible`).
     """
 
-    def __init__(self, imager: Imager, n_noise: int = 24, min_aperture: float = 0.1, seed: int = 0,
-                 cache: int = 8) -> None:
+    def __init__(
+        self, imager: Imager, n_noise: int = 24, min_aperture: float = 0.1, seed: int = 0, cache: int = 8
+    ) -> None:
         self.imager = imager
         self.power = NullPower(imager.grid, eps=max(imager.config.eps, 1e-4))
         self.n_noise = n_noise
@@ -159,13 +160,21 @@ class NullLevel:
         self._apertures: OrderedDict[tuple, np.ndarray] = OrderedDict()
         self._cache = cache
 
-    def aperture(self, acq: Acquisition, pw: PlaneWaveData, fp: Fingerprint,
-                 resolution: tuple[float, float]) -> np.ndarray:
+    def aperture(
+        self, acq: Acquisition, pw: PlaneWaveData, fp: Fingerprint, resolution: tuple[float, float]
+    ) -> np.ndarray:
         """A(r) in [0, 1] (class doc) for the geometry of `acq` and `pw`, cached per fingerprint and geometry."""
         probe, seq = acq.probe, acq.sequence
         shape = (pw.freqs.size, probe.n_elements, seq.n_waves)
-        key = (getattr(fp, "token", id(fp)), shape, pw.freqs.tobytes(), pw.out_sines.tobytes(),
-               probe.positions.tobytes(), seq.sines.tobytes(), float(pw.c0))
+        key = (
+            getattr(fp, "token", id(fp)),
+            shape,
+            pw.freqs.tobytes(),
+            pw.out_sines.tobytes(),
+            probe.positions.tobytes(),
+            seq.sines.tobytes(),
+            float(pw.c0),
+        )
         a = self._apertures.get(key)
         if a is not None:
             self._apertures.move_to_end(key)
@@ -187,8 +196,9 @@ class NullLevel:
             self._apertures.popitem(last=False)
         return a
 
-    def level(self, acq: Acquisition, pw: PlaneWaveData, fp: Fingerprint,
-              resolution: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    def level(
+        self, acq: Acquisition, pw: PlaneWaveData, fp: Fingerprint, resolution: tuple[float, float]
+    ) -> tuple[np.ndarray, np.ndarray]:
         """(level, visible): γ²'s null level up to a constant, and the nodes where the fingerprint can be
         tested (A ≥ `min_aperture`)."""
         a = self.aperture(acq, pw, fp, resolution)

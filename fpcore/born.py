@@ -18,10 +18,20 @@ from .geometry import cosines
 __all__ = ["born_points"]
 
 
-def born_points(probe: Probe, seq: PlaneWaveSequence, points: np.ndarray, amps: np.ndarray,
-                fs: float = 20e6, n_t: int = 640, c0: float = 1540.0, t0: float = 0.0,
-                fc: float | None = None, bw: float | None = None, frame_index: int = 0,
-                timestamp: float = 0.0) -> Acquisition:
+def born_points(
+    probe: Probe,
+    seq: PlaneWaveSequence,
+    points: np.ndarray,
+    amps: np.ndarray,
+    fs: float = 20e6,
+    n_t: int = 640,
+    c0: float = 1540.0,
+    t0: float = 0.0,
+    fc: float | None = None,
+    bw: float | None = None,
+    frame_index: int = 0,
+    timestamp: float = 0.0,
+) -> Acquisition:
     """RF frame (N_u, N_θ, n_t) of point reflectors at `points` (P, 3) with amplitudes `amps` (P,)."""
     fc = probe.centre_frequency if fc is None else fc
     bw = probe.bandwidth if bw is None else bw

@@ -72,7 +72,7 @@ def ec_density(u: float, d: int, nu: int = 2) -> float:
     elif d == 2:
         poly = u - (nu - 1)
     elif d == 3:
-        poly = u ** 2 - (2 * nu - 1) * u + (nu - 1) * (nu - 2)
+        poly = u**2 - (2 * nu - 1) * u + (nu - 1) * (nu - 2)
     else:
         raise ValueError(f"d: expected 0…3, got {d}")
     return float(c * base * poly)
@@ -93,8 +93,8 @@ def resels_ellipsoid(semi_axes: np.ndarray) -> np.ndarray:
     a = np.asarray(semi_axes, float)
     r = float(np.prod(a) ** (1 / a.size))
     if a.size == 2:
-        return np.array([1.0, pi * r, pi * r ** 2])
-    return np.array([1.0, 4 * r, 2 * pi * r ** 2, 4 / 3 * pi * r ** 3])
+        return np.array([1.0, pi * r, pi * r**2])
+    return np.array([1.0, 4 * r, 2 * pi * r**2, 4 / 3 * pi * r**3])
 
 
 def max_tail(t: float, resels: np.ndarray, n_train: float = np.inf) -> float:
@@ -218,14 +218,26 @@ def k_shape(log_moment: np.ndarray) -> np.ndarray:
     return np.where(target >= f[-1], np.inf, nu)
 
 
-def null_model(gamma: np.ndarray, grid: Grid, resolution: tuple[float, float], level: np.ndarray | None = None,
-               visible: np.ndarray | None = None, window_cells: tuple[float, float] = (6.0, 3.0),
-               censor: float = 8.0, heavy_tails: bool = True, shape_guard: float = 1.0,
-               global_shape: bool = False, train_scale: float = 1.0) -> NullModel:
+def null_model(
+    gamma: np.ndarray,
+    grid: Grid,
+    resolution: tuple[float, float],
+    level: np.ndarray | None = None,
+    visible: np.ndarray | None = None,
+    window_cells: tuple[float, float] | None = None,
+    censor: float = 8.0,
+    heavy_tails: bool = True,
+    shape_guard: float = 1.0,
+    global_shape: bool = False,
+    train_scale: float = 1.0,
+) -> NullModel:
     """Estimate the local null model of a γ-map (module doc, steps 1–3).
 
     resolution: (lateral, axial) resolution cell in metres (δρ_D, c0/(2Δf)): the unit of the training
-    window (± `window_cells` cells laterally and in depth) and of the guard region around censored nodes.
+    window (± `window_cells` cells laterally and in depth; default ± 6 × ± 3 on a bare map, ± 12 × ± 6
+    over a physical `level`, which leaves only a smooth residual to estimate and so affords more training
+    cells — a target's own censored neighbourhood then leaves enough of them) and of the guard region
+    around censored nodes.
     level: a physical null level of γ² known up to a constant (fpcore.background: the data's energy in
     the fingerprint's own time support times the aperture factor); the CFAR then only corrects what it
     leaves (default: none, γ² itself). visible: nodes where the fingerprint can be tested (the others
@@ -237,9 +249,13 @@ def null_model(gamma: np.ndarray, grid: Grid, resolution: tuple[float, float], l
     nd = g2.ndim
     vis = np.ones(g2.shape, bool) if visible is None else np.asarray(visible, bool)
     lat_res, ax_res = resolution
+    if window_cells is None:
+        window_cells = (6.0, 3.0) if level is None else (12.0, 6.0)
     cells = [lat_res] * (nd - 1) + [ax_res]
-    half = [max(int(round(w * c / s)), 2) for w, c, s in
-            zip([window_cells[0]] * (nd - 1) + [window_cells[1]], cells, grid.spacing, strict=True)]
+    half = [
+        max(int(round(w * c / s)), 2)
+        for w, c, s in zip([window_cells[0]] * (nd - 1) + [window_cells[1]], cells, grid.spacing, strict=True)
+    ]
     sizes = [min(2 * h + 1, n) for h, n in zip(half, g2.shape, strict=True)]
 
     def local_mean(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
@@ -290,5 +306,12 @@ def null_model(gamma: np.ndarray, grid: Grid, resolution: tuple[float, float], l
     count = uniform_filter(train, sizes, mode="constant") * float(np.prod(sizes))
     train_cells = np.maximum(train_scale * count / float(np.prod(fwhm)), 2.0)
     level_out = power if level is None else power * np.asarray(level, np.float64)
-    return NullModel(grid, np.ascontiguousarray(level_out, dtype=np.float32), fwhm, train_cells.astype(np.float32),
-                     stat.astype(np.float32), nu, vis)
+    return NullModel(
+        grid,
+        np.ascontiguousarray(level_out, dtype=np.float32),
+        fwhm,
+        train_cells.astype(np.float32),
+        stat.astype(np.float32),
+        nu,
+        vis,
+    )

@@ -62,6 +62,7 @@ class ModelFamily:
 def mirror_family(lengths: np.ndarray, alphas: np.ndarray, azimuth: float = 0.0) -> ModelFamily:
     """Mirrors of every (α, L): F = L sinc(K·t̂ L/2π) (paper, Methods; docs/design.md §4.5)."""
     states = [{"alpha_rad": float(a), "length_m": float(L)} for a in alphas for L in lengths]
+
     def resp(K3: np.ndarray, q: dict) -> np.ndarray:
         return mirror_response(K3, q["length_m"], q["alpha_rad"], azimuth)
 
@@ -131,8 +132,15 @@ class Dictionary:
     def __len__(self) -> int:
         return len(self.states)
 
-    def evaluate(self, imager: Imager, pw: PlaneWaveData, method: str = "auto", batch: int = 16,
-                 keep_all: bool = False, progress: Callable[[int, int], None] | None = None) -> DictionaryResult:
+    def evaluate(
+        self,
+        imager: Imager,
+        pw: PlaneWaveData,
+        method: str = "auto",
+        batch: int = 16,
+        keep_all: bool = False,
+        progress: Callable[[int, int], None] | None = None,
+    ) -> DictionaryResult:
         """γ(r, q) for every state; method 'auto' | 'fft' (model families) | 'exact' (NUFFT per state)."""
         grid = imager.grid
         r = pw.data.ravel()
@@ -165,8 +173,9 @@ class Dictionary:
                 progress(q + 1, n)
         return DictionaryResult(best_val, best_idx, self.states, grid, all_maps)
 
-    def _exact(self, imager: Imager, pw: PlaneWaveData, r: np.ndarray, r_norm: float,
-               batch: int) -> Iterator[tuple[int, np.ndarray]]:
+    def _exact(
+        self, imager: Imager, pw: PlaneWaveData, r: np.ndarray, r_norm: float, batch: int
+    ) -> Iterator[tuple[int, np.ndarray]]:
         """Every state through the NUFFT, n_trans = batch states per call (plan shared)."""
         grid = imager.grid
         K = wavevectors(pw.freqs, pw.out_sines, pw.in_sines, pw.c0, grid.ndim)
@@ -220,8 +229,9 @@ class _FFTCorrelator:
         pad = [int(np.ceil(extent / 2 / d)) + 24 for d in spacing]
         shape_ext = tuple(sfft.next_fast_len(n + 2 * p) for n, p in zip(grid.shape, pad, strict=True))
         offs = [(ne - n) // 2 for ne, n in zip(shape_ext, grid.shape, strict=True)]
-        axes_ext = [a[0] + (np.arange(ne) - o) * d
-                    for a, ne, o, d in zip(grid.axes, shape_ext, offs, spacing, strict=True)]
+        axes_ext = [
+            a[0] + (np.arange(ne) - o) * d for a, ne, o, d in zip(grid.axes, shape_ext, offs, spacing, strict=True)
+        ]
         ext = Grid.from_axes(axes_ext)
         kern = GridTransform(K - centre[None, :], ext, eps=eps)
         kappa, tapers = [], []
@@ -240,8 +250,9 @@ class _FFTCorrelator:
         K3k = to_xyz(np.stack([k.ravel() for k in k_true], axis=1), grid.ndim)
         Ks3 = to_xyz(K, grid.ndim)
         crop = tuple(slice(o, o + n) for o, n in zip(offs, grid.shape, strict=True))
-        return cls(kern, taper.astype(np.float32), crop, K3k.astype(np.float32), family, shape_ext,
-                   Ks3.astype(np.float32))
+        return cls(
+            kern, taper.astype(np.float32), crop, K3k.astype(np.float32), family, shape_ext, Ks3.astype(np.float32)
+        )
 
     def maps(self, r: np.ndarray, r_norm: float, batch: int) -> Iterator[tuple[int, np.ndarray]]:
         field_ext = self.kernel(r)
@@ -260,8 +271,7 @@ class _FFTCorrelator:
             for j, (resp, f) in enumerate(zip(on_grid, on_samples, strict=True)):
                 np.multiply(spec, np.conj(resp).reshape(self.shape_ext), out=stack[j])
                 norms.append(float(np.sqrt(np.vdot(f, f).real)))
-            out = sfft.ifftn(stack, axes=tuple(range(1, stack.ndim)), workers=default_threads(),
-                             overwrite_x=True)
+            out = sfft.ifftn(stack, axes=tuple(range(1, stack.ndim)), workers=default_threads(), overwrite_x=True)
             for j, q in enumerate(idx):
                 m = np.abs(out[(j,) + self.crop])
                 yield q, (m / np.float32(max(norms[j], 1e-300) * max(r_norm, 1e-300))).astype(np.float32)

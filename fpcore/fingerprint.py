@@ -120,27 +120,41 @@ def moving_fingerprint(fp: Fingerprint, velocity: np.ndarray, transmit_times: np
     v = np.asarray(velocity, dtype=float).reshape(3)
     tau = np.asarray(transmit_times, dtype=float).reshape(-1)
     if tau.size != fp.in_sines.shape[0]:
-        raise ValueError(f"transmit_times: expected {fp.in_sines.shape[0]} values (one per transmit), "
-                         f"got {tau.size}")
+        raise ValueError(f"transmit_times: expected {fp.in_sines.shape[0]} values (one per transmit), got {tau.size}")
     k = 2 * np.pi * fp.freqs / fp.c0
     delta = tau[:, None] * v[None, :]  # (N_i, 3): where the target is when transmit j fires
     ramp_out = np.exp(-1j * k[:, None, None] * _path(fp.out_sines, delta)[None])  # (N_f, N_o, N_i)
     ramp_in = np.exp(-1j * k[:, None] * np.diagonal(_path(fp.in_sines, delta))[None, :])  # (N_f, N_i)
     data = (fp.data * ramp_out * ramp_in[:, None, :]).astype(np.complex64)
     state = dict(fp.state, velocity_m_s=[float(x) for x in v])
-    return Fingerprint(data, fp.freqs, fp.out_sines, fp.in_sines, fp.c0, fp.r0, name=fp.name,
-                       provenance=fp.provenance, state=state, n_s=fp.n_s, singular_values=fp.singular_values,
-                       n_t=fp.n_t)
+    return Fingerprint(
+        data,
+        fp.freqs,
+        fp.out_sines,
+        fp.in_sines,
+        fp.c0,
+        fp.r0,
+        name=fp.name,
+        provenance=fp.provenance,
+        state=state,
+        n_s=fp.n_s,
+        singular_values=fp.singular_values,
+        n_t=fp.n_t,
+    )
 
 
 def check_geometry(fp: Fingerprint, pw: PlaneWaveData) -> None:
     """Raise ValueError naming the field if fp does not match the acquisition's plane-wave geometry."""
     if fp.data.shape != pw.data.shape:
-        raise ValueError(f"fingerprint '{fp.name}': shape (N_f, N_o, N_i) = {fp.data.shape} does not match "
-                         f"the acquisition's {pw.data.shape} (band, output directions or plane waves differ)")
+        raise ValueError(
+            f"fingerprint '{fp.name}': shape (N_f, N_o, N_i) = {fp.data.shape} does not match "
+            f"the acquisition's {pw.data.shape} (band, output directions or plane waves differ)"
+        )
     if not np.allclose(fp.freqs, pw.freqs, rtol=1e-9, atol=1e-3):
-        raise ValueError(f"fingerprint '{fp.name}': frequencies differ from the acquisition's "
-                         "(same band, n_freq and sampling expected)")
+        raise ValueError(
+            f"fingerprint '{fp.name}': frequencies differ from the acquisition's "
+            "(same band, n_freq and sampling expected)"
+        )
     if not np.allclose(fp.in_sines, pw.in_sines, atol=1e-9):
         raise ValueError(f"fingerprint '{fp.name}': transmit sines differ from the acquisition's sequence")
     if not np.allclose(fp.out_sines, pw.out_sines, atol=1e-9):
@@ -149,8 +163,7 @@ def check_geometry(fp: Fingerprint, pw: PlaneWaveData) -> None:
         raise ValueError(f"fingerprint '{fp.name}': c0 = {fp.c0} m/s, acquisition has {pw.c0} m/s")
 
 
-def time_gate(acq: Acquisition, r0: np.ndarray, diameter: float, dt: float,
-              taper: float = 0.0) -> Acquisition:
+def time_gate(acq: Acquisition, r0: np.ndarray, diameter: float, dt: float, taper: float = 0.0) -> Acquisition:
     """R0' = R0 · H(t − τ_in(θ, r0) − τ_out(u, r0) − δt) (paper eq. specular_filter).
 
     taper > 0 replaces the Heaviside step by a raised-cosine ramp of that duration (s) ending at the
@@ -171,8 +184,17 @@ def time_gate(acq: Acquisition, r0: np.ndarray, diameter: float, dt: float,
         mask = 0.5 - 0.5 * np.cos(np.pi * mask)
     else:
         mask = (arg >= 0).astype(np.float32)
-    return Acquisition(acq.rf * mask.astype(np.float32), acq.fs, acq.t0, acq.c0, acq.probe, acq.sequence,
-                       acq.frame_index, acq.timestamp, dict(acq.truth))
+    return Acquisition(
+        acq.rf * mask.astype(np.float32),
+        acq.fs,
+        acq.t0,
+        acq.c0,
+        acq.probe,
+        acq.sequence,
+        acq.frame_index,
+        acq.timestamp,
+        dict(acq.truth),
+    )
 
 
 def whiten(spec: Spectrum, threshold: float = 0.4) -> tuple[Spectrum, np.ndarray, np.ndarray]:
@@ -221,8 +243,8 @@ def _aligned_energy(acq: Acquisition, point: np.ndarray) -> np.ndarray:
     rf = acq.rf.reshape(-1, n_t)
     energy = np.zeros(4 * n_t)
     for a in range(0, rf.shape[0], 2048):
-        e = rf[a:a + 2048].astype(np.float64) ** 2
-        cols = start[a:a + 2048, None] + np.arange(n_t)[None, :]
+        e = rf[a : a + 2048].astype(np.float64) ** 2
+        cols = start[a : a + 2048, None] + np.arange(n_t)[None, :]
         energy += np.bincount(cols.ravel(), weights=e.ravel(), minlength=4 * n_t)
     return energy
 
@@ -235,7 +257,7 @@ def effective_duration(acq: Acquisition, r0: np.ndarray, diameter: float) -> flo
     total = energy.sum()
     if total <= 0:
         return 0.0
-    return float(total ** 2 / (energy ** 2).sum() / acq.fs)
+    return float(total**2 / (energy**2).sum() / acq.fs)
 
 
 def first_arrival_diameter(acq: Acquisition, r0: np.ndarray, threshold_db: float = -20.0) -> float:
@@ -256,15 +278,24 @@ def first_arrival_diameter(acq: Acquisition, r0: np.ndarray, threshold_db: float
     smooth = np.convolve(energy, np.ones(width) / width, mode="same")
     i = int(np.nonzero(smooth >= smooth.max() * 10 ** (threshold_db / 10))[0][0])
     pulse = max(int(round(acq.fs / max(acq.probe.bandwidth, 1.0))), 1)  # one pulse length, 1/Δf
-    i += int(np.argmax(smooth[i:i + pulse]))  # the first echo's peak, within one pulse of its rise
+    i += int(np.argmax(smooth[i : i + pulse]))  # the first echo's peak, within one pulse of its rise
     t_first = (i - 2 * acq.n_samples) / acq.fs
     return float(max(-acq.c0 * t_first, 0.0))
 
 
-def from_calibration(acq: Acquisition, r0: np.ndarray, out_sines: np.ndarray, band: tuple[float, float],
-                     n_freq: int | None = None, diameter: float | None = 0.0, svd_threshold: float = 0.4,
-                     gate_dt: float | None = None, angular_filter: bool = True, name: str = "target",
-                     gate: bool = True) -> Fingerprint:
+def from_calibration(
+    acq: Acquisition,
+    r0: np.ndarray,
+    out_sines: np.ndarray,
+    band: tuple[float, float],
+    n_freq: int | None = None,
+    diameter: float | None = 0.0,
+    svd_threshold: float = 0.4,
+    gate_dt: float | None = None,
+    angular_filter: bool = True,
+    name: str = "target",
+    gate: bool = True,
+) -> Fingerprint:
     """Fingerprint from a calibration acquisition of the target alone at r0 (paper, Methods).
 
     band/n_freq/out_sines must be those the processor uses on the frames (checked at use).
@@ -289,21 +320,49 @@ def from_calibration(acq: Acquisition, r0: np.ndarray, out_sines: np.ndarray, ba
         a_in = angular_mask(pw.in_sines, r0, acq.probe, margin=diameter / 2)
         data = data * (a_out[None, :, None] & a_in[None, None, :])
     n_t = (f_max - f_min) * effective_duration(gated, r0, diameter)
-    return Fingerprint(np.ascontiguousarray(data, dtype=np.complex64), pw.freqs, pw.out_sines, pw.in_sines,
-                       pw.c0, r0, name=name, provenance="calibration",
-                       state={"diameter_m": diameter, "svd_threshold": svd_threshold, "gate_dt_s": dt,
-                              "gate": "front" if gate else "none"},
-                       n_s=float(np.mean(n_s_f)), singular_values=rel.astype(np.float32), n_t=float(n_t))
+    return Fingerprint(
+        np.ascontiguousarray(data, dtype=np.complex64),
+        pw.freqs,
+        pw.out_sines,
+        pw.in_sines,
+        pw.c0,
+        r0,
+        name=name,
+        provenance="calibration",
+        state={
+            "diameter_m": diameter,
+            "svd_threshold": svd_threshold,
+            "gate_dt_s": dt,
+            "gate": "front" if gate else "none",
+        },
+        n_s=float(np.mean(n_s_f)),
+        singular_values=rel.astype(np.float32),
+        n_t=float(n_t),
+    )
 
 
-def point_fingerprint(freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, c0: float,
-                      r0: ArrayLike = (0.0, 0.0, 0.0), name: str = "point") -> Fingerprint:
+def point_fingerprint(
+    freqs: np.ndarray,
+    out_sines: np.ndarray,
+    in_sines: np.ndarray,
+    c0: float,
+    r0: ArrayLike = (0.0, 0.0, 0.0),
+    name: str = "point",
+) -> Fingerprint:
     """Point reflector at r0: F = e^{-iK·r0} (Γ = δ(r − r0); paper, Methods "Numerical computation")."""
     r0 = np.asarray(r0, dtype=float)
     K3 = wavevectors(freqs, out_sines, in_sines, c0, 3)
     data = np.exp(-1j * (K3 @ r0)).reshape(len(freqs), len(out_sines), len(in_sines))
-    return Fingerprint(data.astype(np.complex64), np.asarray(freqs, float), np.asarray(out_sines, float),
-                       np.asarray(in_sines, float), c0, r0, name=name, provenance="model:point")
+    return Fingerprint(
+        data.astype(np.complex64),
+        np.asarray(freqs, float),
+        np.asarray(out_sines, float),
+        np.asarray(in_sines, float),
+        c0,
+        r0,
+        name=name,
+        provenance="model:point",
+    )
 
 
 def mirror_response(K3: np.ndarray, length: float, alpha: float, azimuth: float = 0.0) -> np.ndarray:
@@ -322,9 +381,17 @@ def sinc_segment(kt: np.ndarray, length: float) -> np.ndarray:
     return out
 
 
-def mirror_fingerprint(freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, c0: float,
-                       length: float, alpha: float, r0: ArrayLike = (0.0, 0.0, 0.0), azimuth: float = 0.0,
-                       name: str = "mirror") -> Fingerprint:
+def mirror_fingerprint(
+    freqs: np.ndarray,
+    out_sines: np.ndarray,
+    in_sines: np.ndarray,
+    c0: float,
+    length: float,
+    alpha: float,
+    r0: ArrayLike = (0.0, 0.0, 0.0),
+    azimuth: float = 0.0,
+    name: str = "mirror",
+) -> Fingerprint:
     """Straight mirror (uniform reflectivity segment) of length L, orientation α, centred at r0.
 
     Closed form of P Γ Pᵀ for Γ on a segment (docs/design.md §4.5): F = L sinc(K·t̂ L/2π) e^{-iK·r0}.
@@ -332,8 +399,15 @@ def mirror_fingerprint(freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.nd
     r0 = np.asarray(r0, dtype=float)
     K3 = wavevectors(freqs, out_sines, in_sines, c0, 3)
     data = mirror_response(K3, length, alpha, azimuth) * np.exp(-1j * (K3 @ r0))
-    return Fingerprint(data.reshape(len(freqs), len(out_sines), len(in_sines)).astype(np.complex64),
-                       np.asarray(freqs, float), np.asarray(out_sines, float), np.asarray(in_sines, float),
-                       c0, r0, name=name, provenance="model:mirror",
-                       state={"length_m": length, "alpha_rad": alpha, "azimuth_rad": azimuth},
-                       n_s=1.0)
+    return Fingerprint(
+        data.reshape(len(freqs), len(out_sines), len(in_sines)).astype(np.complex64),
+        np.asarray(freqs, float),
+        np.asarray(out_sines, float),
+        np.asarray(in_sines, float),
+        c0,
+        r0,
+        name=name,
+        provenance="model:mirror",
+        state={"length_m": length, "alpha_rad": alpha, "azimuth_rad": azimuth},
+        n_s=1.0,
+    )

@@ -45,12 +45,19 @@ class Grid:
             object.__setattr__(self, name, a)
 
     @classmethod
-    def regular(cls, x_range: tuple[float, float], z_range: tuple[float, float], spacing: float,
-                y_range: tuple[float, float] | None = None) -> Grid:
+    def regular(
+        cls,
+        x_range: tuple[float, float],
+        z_range: tuple[float, float],
+        spacing: float,
+        y_range: tuple[float, float] | None = None,
+    ) -> Grid:
         """Grid covering the ranges (metres) with the given spacing."""
+
         def ax(r: tuple[float, float]) -> np.ndarray:
             n = int(np.floor((r[1] - r[0]) / spacing + 1e-9)) + 1
             return _axis(r[0], spacing, n)
+
         return cls(ax(x_range), ax(z_range), None if y_range is None else ax(y_range))
 
     @classmethod
@@ -71,9 +78,15 @@ class Grid:
         raise ValueError(f"axes: expected 2 (x, z) or 3 (x, y, z) axes, got {len(axes)}")
 
     @classmethod
-    def for_acquisition(cls, acq: Acquisition, band: tuple[float, float],
-                        x_range: tuple[float, float] | None = None, y_range: tuple[float, float] | None = None,
-                        z_range: tuple[float, float] | None = None, spacing: float | None = None) -> Grid:
+    def for_acquisition(
+        cls,
+        acq: Acquisition,
+        band: tuple[float, float],
+        x_range: tuple[float, float] | None = None,
+        y_range: tuple[float, float] | None = None,
+        z_range: tuple[float, float] | None = None,
+        spacing: float | None = None,
+    ) -> Grid:
         """Default imaging grid of an acquisition (docs/design.md §3), each part overridable.
 
         Depths: the record's time window, z = c0 t/2 (from 2λ). Lateral: the aperture widened by the
@@ -85,7 +98,7 @@ class Grid:
         t = acq.times
         z = z_range or (max(acq.c0 * t[0] / 2, 2 * lam), acq.c0 * t[-1] / 2)
         s = np.abs(acq.sequence.sines).max(axis=0)
-        fan = z[1] * s / np.sqrt(1 - s ** 2)  # per axis: tan θ = s/c with c = √(1 − s²) (docs/design.md §4)
+        fan = z[1] * s / np.sqrt(1 - s**2)  # per axis: tan θ = s/c with c = √(1 − s²) (docs/design.md §4)
         half = [min(a / 2 + f, a) for a, f in zip(acq.probe.aperture, fan, strict=True)]
         x = x_range or (-half[0], half[0])
         if acq.probe.is_linear:
@@ -137,8 +150,10 @@ class Grid:
     def nearest_index(self, r: ArrayLike) -> tuple[int, ...]:
         """Index of the node nearest to position r = (x, y, z)."""
         coords = self.from_xyz(r)
-        return tuple(int(np.clip(np.rint((c - a[0]) / (a[1] - a[0] if a.size > 1 else 1.0)), 0, a.size - 1))
-                     for c, a in zip(coords, self.axes, strict=True))
+        return tuple(
+            int(np.clip(np.rint((c - a[0]) / (a[1] - a[0] if a.size > 1 else 1.0)), 0, a.size - 1))
+            for c, a in zip(coords, self.axes, strict=True)
+        )
 
 
 @dataclass(frozen=True)
@@ -165,5 +180,6 @@ class Roi:
 
     def grid(self, spacing: float | None = None) -> Grid:
         """The regular grid covering the region, at `spacing` (m; default: the region's own step)."""
-        return Grid.regular(self.x_range, self.z_range, self.spacing if spacing is None else spacing,
-                            y_range=self.y_range)
+        return Grid.regular(
+            self.x_range, self.z_range, self.spacing if spacing is None else spacing, y_range=self.y_range
+        )

@@ -59,8 +59,9 @@ class KernelType(Protocol):
 
     def supports(self, out_sines: np.ndarray, in_sines: np.ndarray, ndim: int) -> bool: ...
 
-    def for_geometry(self, freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, c0: float, grid: Grid,
-                     eps: float) -> Kernel: ...
+    def for_geometry(
+        self, freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, c0: float, grid: Grid, eps: float
+    ) -> Kernel: ...
 
 
 def default_threads() -> int:
@@ -69,8 +70,7 @@ def default_threads() -> int:
     return int(env) if env else (os.cpu_count() or 1)
 
 
-def wavevectors(freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, c0: float,
-                ndim: int) -> np.ndarray:
+def wavevectors(freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, c0: float, ndim: int) -> np.ndarray:
     """K_j = k_f (s_o + s_i, c_o + c_i) for all samples, shape (N_f·N_o·N_i, ndim), order (f, o, i).
 
     ndim = 2 gives (K_x, K_z); ndim = 3 gives (K_x, K_y, K_z). c = √(1 − s_x² − s_y²) (docs/design.md §4).
@@ -95,8 +95,8 @@ def direct_sum(weights: np.ndarray, K: np.ndarray, points: np.ndarray, chunk: in
     coords = from_xyz(np.asarray(points, dtype=np.float64).reshape(-1, 3), K.shape[1])  # K's layout
     out = np.empty(coords.shape[0], dtype=np.complex128)
     for a in range(0, coords.shape[0], chunk):
-        phase = coords[a:a + chunk] @ K.T
-        out[a:a + chunk] = np.exp(1j * phase) @ w
+        phase = coords[a : a + chunk] @ K.T
+        out[a : a + chunk] = np.exp(1j * phase) @ w
     return out
 
 
@@ -108,8 +108,15 @@ class GridTransform:
     n_trans: number of weight vectors transformed per call (a dictionary batch).
     """
 
-    def __init__(self, K: np.ndarray, grid: Grid, eps: float = 1e-4, n_trans: int = 1,
-                 nthreads: int | None = None, precision: str = "single") -> None:
+    def __init__(
+        self,
+        K: np.ndarray,
+        grid: Grid,
+        eps: float = 1e-4,
+        n_trans: int = 1,
+        nthreads: int | None = None,
+        precision: str = "single",
+    ) -> None:
         import finufft
 
         if K.shape[1] != grid.ndim:
@@ -124,10 +131,17 @@ class GridTransform:
         # Strength ramp e^{iK·r_c}: the grid's index-0 mode sits on the node N//2 (finufft modeord 0).
         self.ramp = np.exp(1j * (K @ centre)).astype(self.complex_dtype)
         pts = [np.mod(K[:, d] * spacing[d] + np.pi, 2 * np.pi) - np.pi for d in range(grid.ndim)]
-        self._plan = finufft.Plan(1, grid.shape, n_trans=n_trans, eps=eps, isign=1,
-                                  dtype="complex64" if precision == "single" else "complex128",
-                                  nthreads=nthreads or default_threads(), fftw=0,
-                                  upsampfac=1.25 if eps >= 1e-4 else 2.0)
+        self._plan = finufft.Plan(
+            1,
+            grid.shape,
+            n_trans=n_trans,
+            eps=eps,
+            isign=1,
+            dtype="complex64" if precision == "single" else "complex128",
+            nthreads=nthreads or default_threads(),
+            fftw=0,
+            upsampfac=1.25 if eps >= 1e-4 else 2.0,
+        )
         self._plan.setpts(*[p.astype(real_dtype) for p in pts])
 
     @staticmethod
@@ -136,8 +150,9 @@ class GridTransform:
         return True
 
     @classmethod
-    def for_geometry(cls, freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, c0: float, grid: Grid,
-                     eps: float) -> GridTransform:
+    def for_geometry(
+        cls, freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, c0: float, grid: Grid, eps: float
+    ) -> GridTransform:
         """The kernel of the samples K_j = k_f (s_o + s_i, c_o + c_i) (`wavevectors`) on `grid`."""
         return cls(wavevectors(freqs, out_sines, in_sines, c0, grid.ndim), grid, eps=eps)
 

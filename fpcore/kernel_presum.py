@@ -141,8 +141,10 @@ def _kernel_table(width: int, beta: float) -> tuple[np.ndarray, np.ndarray]:
     φ(u − l0 − t) = φ(w/2 − 1 + frac(u) − t)."""
     x = width / 2 - 1 + np.arange(N_TABLE + 2) / N_TABLE
     tab = _phi(x[:, None] - np.arange(width)[None, :], width, beta)
-    return (np.ascontiguousarray(tab[:-1], dtype=np.float32),
-            np.ascontiguousarray(np.diff(tab, axis=0), dtype=np.float32))
+    return (
+        np.ascontiguousarray(tab[:-1], dtype=np.float32),
+        np.ascontiguousarray(np.diff(tab, axis=0), dtype=np.float32),
+    )
 
 
 def _cos_sin(theta: np.ndarray, n: int, scale: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -152,8 +154,10 @@ def _cos_sin(theta: np.ndarray, n: int, scale: np.ndarray | None = None) -> tupl
     q = np.arange(max(n // 2, n - 1 - n // 2) + 1)
     ph = np.asarray(theta, dtype=np.float64)[..., None, :] * q[:, None]
     inv = 1.0 if scale is None else 1.0 / np.asarray(scale, dtype=np.float64)[:, None]
-    return (np.ascontiguousarray(np.cos(ph) * inv, dtype=np.float32),
-            np.ascontiguousarray(np.sin(ph) * inv, dtype=np.float32))
+    return (
+        np.ascontiguousarray(np.cos(ph) * inv, dtype=np.float32),
+        np.ascontiguousarray(np.sin(ph) * inv, dtype=np.float32),
+    )
 
 
 # ------------------------------------------------------------------------------------------------
@@ -172,22 +176,33 @@ class PresumTransform:
     Not re-entrant: an instance owns its work buffers (one call at a time per instance).
     """
 
-    def __init__(self, freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, c0: float,
-                 grid: Grid, eps: float = 1e-4, nthreads: int | None = None, lateral: str = "auto",
-                 sigma: float | None = None) -> None:
+    def __init__(
+        self,
+        freqs: np.ndarray,
+        out_sines: np.ndarray,
+        in_sines: np.ndarray,
+        c0: float,
+        grid: Grid,
+        eps: float = 1e-4,
+        nthreads: int | None = None,
+        lateral: str = "auto",
+        sigma: float | None = None,
+    ) -> None:
         if loops.nb is None:
             raise ImportError("PresumTransform needs numba (pip install numba)")
         if lateral not in ("auto", "exact", "nufft"):
             raise ValueError(f"lateral: expected 'auto', 'exact' or 'nufft', got {lateral!r}")
         ndim = grid.ndim
         so, si = _as_sines(out_sines), _as_sines(in_sines)
-        if np.any(np.sum(so ** 2, axis=1) >= 1) or np.any(np.sum(si ** 2, axis=1) >= 1):
+        if np.any(np.sum(so**2, axis=1) >= 1) or np.any(np.sum(si**2, axis=1) >= 1):
             raise ValueError("sines: every direction must satisfy s_x² + s_y² < 1")
         lat = lattice(so, si, ndim)
         if lat is None:
-            raise ValueError("sines: the output and transmit sines are not on one lattice per lateral axis "
-                             "(integer multiples of a common step δs, up to one offset per set); "
-                             "use GridTransform")
+            raise ValueError(
+                "sines: the output and transmit sines are not on one lattice per lateral axis "
+                "(integer multiples of a common step δs, up to one offset per set); "
+                "use GridTransform"
+            )
         freqs = np.asarray(freqs, dtype=np.float64).ravel()
         self.grid = grid
         self.shape = grid.shape
@@ -257,8 +272,7 @@ class PresumTransform:
         nf_lat = [max(math.ceil(sigma * n), 2 * _TAPS) if n > 1 else 1 for n in lat_shape]
         rows = float(np.sum(glen))  # Σ_f L_f
         cost_exact = 4 * rows * mx * (qy * my + qx * ny)
-        cost_nufft = (6 * 2 * rows * mx * my * _TAPS ** nl
-                      + 4 * nglob * nf_lat[0] * (qy * nf_lat[1] + qx * ny))
+        cost_nufft = 6 * 2 * rows * mx * my * _TAPS**nl + 4 * nglob * nf_lat[0] * (qy * nf_lat[1] + qx * ny)
         self.cost = {"exact": cost_exact, "nufft": cost_nufft}
         self.lateral = min(self.cost, key=lambda k: self.cost[k]) if lateral == "auto" else lateral
         nt = self.nthreads
@@ -280,8 +294,10 @@ class PresumTransform:
             self._ux = np.ascontiguousarray(pos[0])
             self._uy = np.ascontiguousarray(pos[1]) if ndim == 3 else np.zeros((self.n_freq, 1))
             # synthesis from the fine lateral grids: e^{i p h k} / φ̂(p h), split in cos and sin
-            syn = [_cos_sin(hh * np.arange(n)[None, :], nn, _phi_hat(np.arange(nn // 2 + 1) * hh, _TAPS, beta))
-                   for hh, n, nn in zip(hl, nf_lat, lat_shape, strict=False)]
+            syn = [
+                _cos_sin(hh * np.arange(n)[None, :], nn, _phi_hat(np.arange(nn // 2 + 1) * hh, _TAPS, beta))
+                for hh, n, nn in zip(hl, nf_lat, lat_shape, strict=False)
+            ]
             self._Cx, self._Sx = syn[0][0][0], syn[0][1][0]
             self._Cy, self._Sy = (syn[1][0][0], syn[1][1][0]) if ndim == 3 else _cos_sin(np.zeros(1), 1)
             self._W = np.zeros((nt, nf_lat[1], nf_lat[0], 2, nglob), dtype=np.float32)
@@ -298,8 +314,9 @@ class PresumTransform:
         return loops.nb is not None and PresumTransform.applicable(out_sines, in_sines, ndim)
 
     @classmethod
-    def for_geometry(cls, freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, c0: float, grid: Grid,
-                     eps: float) -> PresumTransform:
+    def for_geometry(
+        cls, freqs: np.ndarray, out_sines: np.ndarray, in_sines: np.ndarray, c0: float, grid: Grid, eps: float
+    ) -> PresumTransform:
         """`PresumTransform(freqs, out_sines, in_sines, c0, grid, eps)` (the `KernelType` builder)."""
         return cls(freqs, out_sines, in_sines, c0, grid, eps=eps)
 
@@ -333,24 +350,108 @@ class PresumTransform:
         nx, ny = self._Hs.shape[1:3]
         nz = self.shape[-1]
         out = np.empty((nx * ny, 2 * nz), dtype=np.float32)
-        pool(nt, nk, loops.spread_depth, lambda c, k: (wr, self._P, self._Q, self._ua, self._ub, self._go, self._gi,
-                                                       self._gbase, self._glen, self._tab, self._dtab, self._G, k, nk))
+        pool(
+            nt,
+            nk,
+            loops.spread_depth,
+            lambda c, k: (
+                wr,
+                self._P,
+                self._Q,
+                self._ua,
+                self._ub,
+                self._go,
+                self._gi,
+                self._gbase,
+                self._glen,
+                self._tab,
+                self._dtab,
+                self._G,
+                k,
+                nk,
+            ),
+        )
         self._Hs[:] = 0
         if self.lateral == "exact":
-            pool(nt, nk, loops.lateral_exact, lambda c, k: (self._G, self._gbase, self._glen, self._lstart, self._Cx,
-                                                            self._Sx, self._Cy, self._Sy, nx, ny, self._T[c],
-                                                            self._acc[c], self._Hs[c], k, nk))
+            pool(
+                nt,
+                nk,
+                loops.lateral_exact,
+                lambda c, k: (
+                    self._G,
+                    self._gbase,
+                    self._glen,
+                    self._lstart,
+                    self._Cx,
+                    self._Sx,
+                    self._Cy,
+                    self._Sy,
+                    nx,
+                    ny,
+                    self._T[c],
+                    self._acc[c],
+                    self._Hs[c],
+                    k,
+                    nk,
+                ),
+            )
         else:
             self._W[:] = 0
-            pool(nt, nk, loops.spread_lateral, lambda c, k: (self._G, self._gbase, self._glen, self._lstart, self._ux,
-                                                             self._uy, self._tab, self._dtab, self._W[c], k, nk))
+            pool(
+                nt,
+                nk,
+                loops.spread_lateral,
+                lambda c, k: (
+                    self._G,
+                    self._gbase,
+                    self._glen,
+                    self._lstart,
+                    self._ux,
+                    self._uy,
+                    self._tab,
+                    self._dtab,
+                    self._W[c],
+                    k,
+                    nk,
+                ),
+            )
             Ws = (self._W[0] if nt == 1 else self._W.sum(axis=0)).ravel()
             nglob, H, nq = u64(self._nglob), self._Hs[0], 4 * nt
             if ny > 1:
-                pool(nt, nq, loops.lat_y, lambda c, t: (Ws, u64(0), nglob, self._W.shape[2], self._Cy, self._Sy, ny,
-                                                        *split(self._Cy.shape[0], nq, t), self._T, self._acc[c]))
-            pool(nt, nq, loops.lat_x, lambda c, t: (Ws if ny == 1 else self._T, nglob, self._Cx, self._Sx, nx, ny,
-                                                    *split(self._Cx.shape[0], nq, t), H, u64(0), self._acc[c]))
+                pool(
+                    nt,
+                    nq,
+                    loops.lat_y,
+                    lambda c, t: (
+                        Ws,
+                        u64(0),
+                        nglob,
+                        self._W.shape[2],
+                        self._Cy,
+                        self._Sy,
+                        ny,
+                        *split(self._Cy.shape[0], nq, t),
+                        self._T,
+                        self._acc[c],
+                    ),
+                )
+            pool(
+                nt,
+                nq,
+                loops.lat_x,
+                lambda c, t: (
+                    Ws if ny == 1 else self._T,
+                    nglob,
+                    self._Cx,
+                    self._Sx,
+                    nx,
+                    ny,
+                    *split(self._Cx.shape[0], nq, t),
+                    H,
+                    u64(0),
+                    self._acc[c],
+                ),
+            )
         Hs = self._Hs.reshape(self._Hs.shape[0], nx * ny, 2, -1)
         nr = 4 * nt
         pool(nt, nr, loops.depth_synthesis, lambda c, t: (Hs, self._A, self._B, out, *split(nx * ny, nr, t)))

@@ -63,7 +63,7 @@ if nb is not None:
         for f in range(f0, nf, fstep):
             L = glen[f]
             b0 = u64(gbase[f])
-            G[b0:u64(gbase[f + 1])] = 0
+            G[b0 : u64(gbase[f + 1])] = 0
             qr[:] = Q[f, :, 0]
             qi[:] = Q[f, :, 1]
             for o in range(no):
@@ -147,7 +147,7 @@ if nb is not None:
     def accumulate(G, b0, n, c, s, acc):  # pragma: no cover
         """acc[:n] = Σ_m c_m G[b0 + m n : …], acc[n:2n] = Σ_m s_m G[…] (rows taken four at a time)."""
         nm = c.shape[0]
-        acc[:n + n] = 0
+        acc[: n + n] = 0
         m = 0
         while m + 4 <= nm:
             c0, c1, c2, c3 = c[m], c[m + 1], c[m + 2], c[m + 3]

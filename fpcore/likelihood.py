@@ -135,8 +135,9 @@ class Imager:
             return np.asarray(self.config.out_sines, dtype=float)
         g = self.grid
         width = (float(np.ptp(g.x)), float(np.ptp(g.y)) if g.y is not None else 0.0)
-        return output_sines(acq.probe, acq.c0, self.config.band[1], field_width=width,
-                            transmit_sines=acq.sequence.sines)
+        return output_sines(
+            acq.probe, acq.c0, self.config.band[1], field_width=width, transmit_sines=acq.sequence.sines
+        )
 
     def plane_waves(self, acq: Acquisition) -> PlaneWaveData:
         """Band selection and output projection: R_θθ(f, θ_out, θ_in) (docs/design.md §4.1–4.2)."""
@@ -222,8 +223,9 @@ class Imager:
             out.append((sl, sub))
         return out
 
-    def _gamma_tiled(self, pw: PlaneWaveData, fp: Fingerprint, probe: Probe, r: np.ndarray,
-                     r_norm: float) -> np.ndarray:
+    def _gamma_tiled(
+        self, pw: PlaneWaveData, fp: Fingerprint, probe: Probe, r: np.ndarray, r_norm: float
+    ) -> np.ndarray:
         """γ with S = A(θ, r_t) P(θ, Δr) per tile t (paper eq. BF), normalised by ‖F ∘ A‖ per tile."""
         key = (fp.token, self._key(pw), probe.positions.tobytes(), probe.pitch)  # A(θ, r) depends on the probe
         cached = self._tiled.get(key)
@@ -234,8 +236,10 @@ class Imager:
             cached = []
             for sl, sub in self._tiles():
                 centre = sub.centre_index_point()
-                a = (angular_mask(pw.out_sines, centre, probe)[:, None]
-                     & angular_mask(pw.in_sines, centre, probe)[None, :]).astype(np.float32)
+                a = (
+                    angular_mask(pw.out_sines, centre, probe)[:, None]
+                    & angular_mask(pw.in_sines, centre, probe)[None, :]
+                ).astype(np.float32)
                 t = (base * a[None]).ravel()
                 norm = float(np.sqrt(np.vdot(t, t).real))
                 kern = GridTransform(K, sub, eps=self.config.eps)

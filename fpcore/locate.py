@@ -38,17 +38,32 @@ def resolution_of(grid: Grid, acq: Acquisition, band: tuple[float, float]) -> tu
     return resolution_cell(lam, acq.probe.aperture[0], band[1] - band[0], acq.c0, 0.5 * (grid.z[0] + grid.z[-1]))
 
 
-def null_of(gamma: np.ndarray, grid: Grid, acq: Acquisition, pw: PlaneWaveData, fp: Fingerprint,
-            band: tuple[float, float], level: NullLevel | None) -> NullModel:
+def null_of(
+    gamma: np.ndarray,
+    grid: Grid,
+    acq: Acquisition,
+    pw: PlaneWaveData,
+    fp: Fingerprint,
+    band: tuple[float, float],
+    level: NullLevel | None,
+) -> NullModel:
     """The local null model of one γ-map, with `level`'s physical null level (None: the CFAR alone)."""
     res = resolution_of(grid, acq, band)
     lev, vis = level.level(acq, pw, fp, res) if level is not None else (None, None)
     return null_model(gamma, grid, res, level=lev, visible=vis)
 
 
-def locate(imager: Imager, acq: Acquisition, fp: Fingerprint, level: NullLevel | None = None, *,
-           pw: PlaneWaveData | None = None, n_peaks: int = 1, max_pfa: float | None = DEFAULT_MAX_PFA,
-           interior: bool = False) -> Located:
+def locate(
+    imager: Imager,
+    acq: Acquisition,
+    fp: Fingerprint,
+    level: NullLevel | None = None,
+    *,
+    pw: PlaneWaveData | None = None,
+    n_peaks: int = 1,
+    max_pfa: float | None = DEFAULT_MAX_PFA,
+    interior: bool = False,
+) -> Located:
     """γ-map of `fp` on `acq` and its detections with calibrated PFA (module doc). `level`: a NullLevel of
     this imager, kept between frames (it caches the fingerprint's aperture factor); default: a new one."""
     pw = imager.plane_waves(acq) if pw is None else pw
@@ -56,6 +71,17 @@ def locate(imager: Imager, acq: Acquisition, fp: Fingerprint, level: NullLevel |
     gamma = imager.gamma(pw, fp)
     nm = null_of(gamma, imager.grid, acq, pw, fp, band, NullLevel(imager) if level is None else level)
     lam = acq.c0 / acq.probe.centre_frequency
-    dets = detect(gamma, imager.grid, lam, acq.probe.aperture[0], band[1] - band[0], acq.c0, name=fp.name,
-                  n_peaks=n_peaks, interior=interior, null=nm, max_pfa=max_pfa)
+    dets = detect(
+        gamma,
+        imager.grid,
+        lam,
+        acq.probe.aperture[0],
+        band[1] - band[0],
+        acq.c0,
+        name=fp.name,
+        n_peaks=n_peaks,
+        interior=interior,
+        null=nm,
+        max_pfa=max_pfa,
+    )
     return Located(gamma, nm, dets)

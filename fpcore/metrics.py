@@ -54,7 +54,7 @@ def paper_pfa(c: float | np.ndarray, n_grains: float) -> np.ndarray | float:
     (the paper prints C = (γ_max/γ_M)²: a slip, module doc) and L independent Rayleigh cells. For
     reference only: detections report the calibrated PFA of fpcore.cfar."""
     c = np.asarray(c, dtype=float)
-    p_pixel = np.exp(-np.pi * c ** 2 / 4)
+    p_pixel = np.exp(-np.pi * c**2 / 4)
     out = -np.expm1(n_grains * np.log1p(-np.minimum(p_pixel, 1 - 1e-300)))
     return float(out) if out.ndim == 0 else out
 
@@ -66,7 +66,7 @@ def _mesh(grid: Grid) -> list[np.ndarray]:
 def _outside_mask(grid: Grid, centre: np.ndarray, radius: float, mesh: list[np.ndarray] | None = None) -> np.ndarray:
     c = (centre[0], centre[2]) if grid.ndim == 2 else (centre[0], centre[1], centre[2])
     d2 = sum((m - ci) ** 2 for m, ci in zip(mesh or _mesh(grid), c, strict=True))
-    return d2 > radius ** 2
+    return d2 > radius**2
 
 
 def border_band(grid: Grid, margin: float, mesh: list[np.ndarray] | None = None) -> np.ndarray:
@@ -89,8 +89,9 @@ def interior_peaks(gamma: np.ndarray, grid: Grid, margin: float, mesh: list[np.n
     return local & ~border_band(grid, margin, mesh)
 
 
-def contrasts(gamma: np.ndarray, grid: Grid, target: np.ndarray, exclusion_radius: float,
-              value: float | None = None) -> tuple[float, float]:
+def contrasts(
+    gamma: np.ndarray, grid: Grid, target: np.ndarray, exclusion_radius: float, value: float | None = None
+) -> tuple[float, float]:
     """(C_γ, C) for the target at position `target` (metres): C_γ = γ_t/mean(γ_out), C = (γ_t/γ_M)².
 
     γ_t is `value` if given (e.g. a sub-pixel peak), else γ at the nearest node; "outside" excludes a
@@ -119,8 +120,9 @@ def cramer_rao_precision(wavelength: float, resolution: float, c_gamma: float) -
     return resolution / np.sqrt(c), wavelength / (4 * np.sqrt(2) * np.pi * np.sqrt(c))
 
 
-def resolution_cell(wavelength: float, aperture: float, bandwidth: float, c0: float,
-                    depth: float) -> tuple[float, float]:
+def resolution_cell(
+    wavelength: float, aperture: float, bandwidth: float, c0: float, depth: float
+) -> tuple[float, float]:
     """(δρ_D at `depth`, c0/(2Δf)): the lateral and axial resolution cells (paper, main text after eq. G)."""
     return diffraction_resolution(wavelength, aperture, max(depth, wavelength)), c0 / (2 * bandwidth)
 
@@ -146,8 +148,9 @@ def refine_peak(gamma: np.ndarray, grid: Grid, index: tuple[int, ...]) -> tuple[
     return p, val
 
 
-def _gamma_peak_near(gamma: np.ndarray, grid: Grid, index: tuple[int, ...],
-                     resolution: tuple[float, float]) -> tuple[int, ...]:
+def _gamma_peak_near(
+    gamma: np.ndarray, grid: Grid, index: tuple[int, ...], resolution: tuple[float, float]
+) -> tuple[int, ...]:
     """The node of largest γ within half a resolution cell of `index`: the significance peaks where γ
     stands out most from its local level, the position estimate is γ's own peak (paper eq. loc)."""
     cells = [resolution[0]] * (grid.ndim - 1) + [resolution[1]]
@@ -176,10 +179,22 @@ class Detection:
         return asdict(self)
 
 
-def detect(gamma: np.ndarray, grid: Grid, wavelength: float, aperture: float, bandwidth: float, c0: float,
-           name: str = "target", exclusion_radius: float | None = None, n_peaks: int = 1,
-           interior: bool = False, level: np.ndarray | None = None, visible: np.ndarray | None = None,
-           max_pfa: float | None = DEFAULT_MAX_PFA, null: NullModel | None = None) -> list[Detection]:
+def detect(
+    gamma: np.ndarray,
+    grid: Grid,
+    wavelength: float,
+    aperture: float,
+    bandwidth: float,
+    c0: float,
+    name: str = "target",
+    exclusion_radius: float | None = None,
+    n_peaks: int = 1,
+    interior: bool = False,
+    level: np.ndarray | None = None,
+    visible: np.ndarray | None = None,
+    max_pfa: float | None = DEFAULT_MAX_PFA,
+    null: NullModel | None = None,
+) -> list[Detection]:
     """The n_peaks most significant maxima of a γ-map with contrasts, calibrated PFA and Cramér–Rao precision.
 
     The map is searched on its local significance S (fpcore.cfar): γ² against a local null level —
@@ -231,7 +246,18 @@ def detect(gamma: np.ndarray, grid: Grid, wavelength: float, aperture: float, ba
         p = nm.pfa(s)
         if max_pfa is not None and not p < max_pfa:
             continue
-        dets.append(Detection(name, [float(v) for v in pos], float(val), float(c_gamma), float(c), float(p),
-                              [float(v) for v in cramer_rao_precision(wavelength, res, c_gamma)],
-                              [int(i) for i in idx], float(np.sqrt(max(float(nm.statistic[top]), 0.0))), s))
+        dets.append(
+            Detection(
+                name,
+                [float(v) for v in pos],
+                float(val),
+                float(c_gamma),
+                float(c),
+                float(p),
+                [float(v) for v in cramer_rao_precision(wavelength, res, c_gamma)],
+                [int(i) for i in idx],
+                float(np.sqrt(max(float(nm.statistic[top]), 0.0))),
+                s,
+            )
+        )
     return dets

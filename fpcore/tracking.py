@@ -126,8 +126,15 @@ class _Track:
 class Tracker:
     """Multi-target tracker over γ-maps of a fixed grid."""
 
-    def __init__(self, grid: Grid, wavelength: float, aperture: float, bandwidth: float, c0: float,
-                 config: TrackerConfig | None = None) -> None:
+    def __init__(
+        self,
+        grid: Grid,
+        wavelength: float,
+        aperture: float,
+        bandwidth: float,
+        c0: float,
+        config: TrackerConfig | None = None,
+    ) -> None:
         self.grid = grid
         self.wavelength = wavelength
         self.aperture = aperture
@@ -154,8 +161,9 @@ class Tracker:
         return np.array([c[0], 0.0, c[1]]) if self.nd == 2 else np.asarray(c, float)
 
     def _resolution(self, depth: float) -> tuple[float, float]:
-        return diffraction_resolution(self.wavelength, self.aperture, max(depth, self.wavelength)), \
-            self.c0 / (2 * self.bandwidth)
+        return diffraction_resolution(self.wavelength, self.aperture, max(depth, self.wavelength)), self.c0 / (
+            2 * self.bandwidth
+        )
 
     def _noise(self, c_gamma: float, depth: float) -> np.ndarray:
         """Measurement covariance from the Cramér–Rao precision (paper eq. loc, docs/design.md §4.10)."""
@@ -166,30 +174,37 @@ class Tracker:
         # resolution c0/(2Δf), so δz = c0/(2Δf)/√C_γ (same √C_γ law as eq. loc).
         ax = ax_res / np.sqrt(max(c_gamma, 1e-12))
         # Floor: the peak is read on the grid (parabolic refinement), σ ≥ spacing/√12 per axis.
-        floor = np.array([d ** 2 / 12 if a.size > 1 else 0.0 for a, d in zip(self.grid.axes, self.grid.spacing,
-                                                                            strict=True)])
-        return np.diag(np.maximum([lat ** 2] * (self.nd - 1) + [ax ** 2], floor))
+        floor = np.array(
+            [d**2 / 12 if a.size > 1 else 0.0 for a, d in zip(self.grid.axes, self.grid.spacing, strict=True)]
+        )
+        return np.diag(np.maximum([lat**2] * (self.nd - 1) + [ax**2], floor))
 
     def _new_filter(self, c: np.ndarray, meas_cov: np.ndarray) -> KalmanFilter:
         nd = self.nd
         kf = KalmanFilter(dim_x=2 * nd, dim_z=nd)
         kf.x = np.concatenate([c, np.zeros(nd)])
         kf.H = np.hstack([np.eye(nd), np.zeros((nd, nd))])
-        kf.P = np.block([[meas_cov, np.zeros((nd, nd))],
-                         [np.zeros((nd, nd)), np.eye(nd) * self.config.initial_speed_sigma ** 2]])
+        kf.P = np.block(
+            [[meas_cov, np.zeros((nd, nd))], [np.zeros((nd, nd)), np.eye(nd) * self.config.initial_speed_sigma**2]]
+        )
         return kf
 
     def _set_dynamics(self, kf: KalmanFilter, dt: float) -> None:
         nd = self.nd
         kf.F = np.block([[np.eye(nd), dt * np.eye(nd)], [np.zeros((nd, nd)), np.eye(nd)]])
-        q = self.config.accel_noise ** 2
-        kf.Q = q * np.block([[dt ** 4 / 4 * np.eye(nd), dt ** 3 / 2 * np.eye(nd)],
-                             [dt ** 3 / 2 * np.eye(nd), dt ** 2 * np.eye(nd)]])
+        q = self.config.accel_noise**2
+        kf.Q = q * np.block(
+            [[dt**4 / 4 * np.eye(nd), dt**3 / 2 * np.eye(nd)], [dt**3 / 2 * np.eye(nd), dt**2 * np.eye(nd)]]
+        )
 
     # --- per-frame update -------------------------------------------------------------------
-    def update(self, gamma_maps: dict[str, np.ndarray], timestamp: float | None = None,
-               levels: dict[str, tuple[np.ndarray, np.ndarray | None]] | None = None,
-               nulls: dict[str, NullModel] | None = None) -> list[TrackState]:
+    def update(
+        self,
+        gamma_maps: dict[str, np.ndarray],
+        timestamp: float | None = None,
+        levels: dict[str, tuple[np.ndarray, np.ndarray | None]] | None = None,
+        nulls: dict[str, NullModel] | None = None,
+    ) -> list[TrackState]:
         """Advance all tracks with this frame's γ-maps (one per fingerprint name).
 
         levels: per name, (null level of γ², visible nodes) from fpcore.background.NullLevel — the
@@ -226,8 +241,9 @@ class Tracker:
             self._update_map(name, g, searched, nm)
         return self.states()
 
-    def _gated_peak(self, gamma: np.ndarray, nm: NullModel, tr: _Track,
-                    allowed: np.ndarray | None) -> tuple[np.ndarray, float, float, np.ndarray] | None:
+    def _gated_peak(
+        self, gamma: np.ndarray, nm: NullModel, tr: _Track, allowed: np.ndarray | None
+    ) -> tuple[np.ndarray, float, float, np.ndarray] | None:
         """Most significant node inside the track's gate, among the `allowed` nodes (interior local maxima)
         unless the prediction itself is in the border band: (coords, γ, calibrated gated PFA, S)."""
         kf = tr.kf
@@ -238,7 +254,7 @@ class Tracker:
         radius = max(radius, self.config.min_gate or 2 * res)
         pred = kf.x[: self.nd]
         d2 = sum((m - ci) ** 2 for m, ci in zip(self._mesh, pred, strict=True))
-        inside = (d2 <= radius ** 2) & nm.visible
+        inside = (d2 <= radius**2) & nm.visible
         candidates = inside
         if allowed is not None and not self._band[self.grid.nearest_index(self._r3(pred))]:
             candidates = inside & allowed  # a border maximum is the flank of something outside
@@ -280,7 +296,7 @@ class Tracker:
                     s_cov = gate[3] if gate is not None else np.eye(self.nd)
                     v = c - tr.kf.x[: self.nd]
                     m2 = float(v @ np.linalg.solve(s_cov, v))
-                    if m2 <= cfg.gate_sigma ** 2:
+                    if m2 <= cfg.gate_sigma**2:
                         cost[i, j] = m2
             rows, cols = linear_sum_assignment(cost)
             assigned = {int(r): int(c) for r, c in zip(rows, cols, strict=True) if cost[r, c] < 1e9}
@@ -320,13 +336,23 @@ class Tracker:
         tr.confidence *= 0.5
         tr.history.append(tr.kf.x[: self.nd].copy())
 
-    def _births(self, name: str, gamma: np.ndarray, current: np.ndarray, tracks: list[_Track],
-                nm: NullModel) -> None:
+    def _births(self, name: str, gamma: np.ndarray, current: np.ndarray, tracks: list[_Track], nm: NullModel) -> None:
         cfg = self.config
         if len([t for t in tracks if t.status != "lost"]) >= cfg.max_tracks_per_map:
             return
-        dets = detect(gamma, self.grid, self.wavelength, self.aperture, self.bandwidth, self.c0, name=name,
-                      n_peaks=cfg.max_tracks_per_map, interior=cfg.skip_border, max_pfa=cfg.p_birth, null=nm)
+        dets = detect(
+            gamma,
+            self.grid,
+            self.wavelength,
+            self.aperture,
+            self.bandwidth,
+            self.c0,
+            name=name,
+            n_peaks=cfg.max_tracks_per_map,
+            interior=cfg.skip_border,
+            max_pfa=cfg.p_birth,
+            null=nm,
+        )
         for det in dets:
             live = [t for t in self.tracks if t.fingerprint == name and t.status != "lost"]
             if len(live) >= cfg.max_tracks_per_map:
@@ -341,9 +367,18 @@ class Tracker:
                 c_gamma = self._contrast(current, gamma, c, det.gamma_max, mean)
             noise = self._noise(c_gamma, c[-1])
             kf = self._new_filter(c, noise)
-            tr = _Track(self._next_id, name, kf, gamma=det.gamma_max, last_pfa=det.pfa, confidence=1 - det.pfa,
-                        c_gamma=c_gamma, precision=np.sqrt(np.diag(noise)), confirm_hits=cfg.confirm_hits,
-                        max_misses=cfg.max_misses)
+            tr = _Track(
+                self._next_id,
+                name,
+                kf,
+                gamma=det.gamma_max,
+                last_pfa=det.pfa,
+                confidence=1 - det.pfa,
+                c_gamma=c_gamma,
+                precision=np.sqrt(np.diag(noise)),
+                confirm_hits=cfg.confirm_hits,
+                max_misses=cfg.max_misses,
+            )
             tr.history.append(c.copy())
             self._next_id += 1
             self.tracks.append(tr)
@@ -358,7 +393,21 @@ class Tracker:
             sel = [0, 2] if nd == 2 else [0, 1, 2]
             cov[np.ix_(sel, sel)] = t.kf.P[:nd, :nd]
             prec = self._r3(t.precision) if t.precision is not None else np.zeros(3)
-            out.append(TrackState(t.track_id, t.fingerprint, pos.tolist(), vel.tolist(), cov.tolist(),
-                                  float(t.confidence), t.age, t.status, t.measured, float(t.gamma),
-                                  float(t.last_pfa), float(t.c_gamma), prec.tolist()))
+            out.append(
+                TrackState(
+                    t.track_id,
+                    t.fingerprint,
+                    pos.tolist(),
+                    vel.tolist(),
+                    cov.tolist(),
+                    float(t.confidence),
+                    t.age,
+                    t.status,
+                    t.measured,
+                    float(t.gamma),
+                    float(t.last_pfa),
+                    float(t.c_gamma),
+                    prec.tolist(),
+                )
+            )
         return out

@@ -67,6 +67,7 @@ def _vector(n: int) -> Callable[[Any], Any]:
     def parse(v: Any) -> Any:
         ok = isinstance(v, (list, tuple)) and len(v) == n and all(_is_number(x) for x in v)
         return tuple(v) if ok else _INVALID
+
     return parse
 
 
@@ -89,6 +90,7 @@ def _vec(n: int) -> dict[str, Any]:
 def _record(cls: type[_Record]) -> dict[str, Any]:
     def parse(v: Any) -> Any:
         return cls.from_dict(v) if isinstance(v, Mapping) else _INVALID
+
     return _spec(parse, lambda r: r.to_dict())
 
 
@@ -97,6 +99,7 @@ def _records(cls: type[_Record]) -> dict[str, Any]:
         if not isinstance(v, list) or not all(isinstance(e, Mapping) for e in v):
             return _INVALID
         return [cls.from_dict(e) for e in v]
+
     return _spec(parse, lambda rs: [r.to_dict() for r in rs])
 
 

@@ -41,8 +41,22 @@ ARRAY_NAME_PATTERN = r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z0-9_]+)*$"
 
 #: dtypes a buffer may have on the wire (numpy ``dtype.str``, little-endian or single byte).
 ALLOWED_DTYPES: tuple[str, ...] = (
-    "|b1", "|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<u8", "<i8", "<f2", "<f4", "<f8", "<c8", "<c16",
+    "|b1",
+    "|u1",
+    "|i1",
+    "<u2",
+    "<i2",
+    "<u4",
+    "<i4",
+    "<u8",
+    "<i8",
+    "<f2",
+    "<f4",
+    "<f8",
+    "<c8",
+    "<c16",
 )
+
 
 class ArrayFieldError(ValueError):
     """A model-level check failed on a named field (the wire layer reports ``field``)."""
@@ -126,12 +140,10 @@ class ArraySpec:
                 if arr.dtype.kind in "biufc" and np.can_cast(arr.dtype, allowed[0], "safe"):
                     arr = arr.astype(allowed[0])
                 else:
-                    raise ValueError(
-                        f"expected dtype {_dtype_names(allowed)}, got {arr.dtype} (cast it explicitly)"
-                    )
+                    raise ValueError(f"expected dtype {_dtype_names(allowed)}, got {arr.dtype} (cast it explicitly)")
         if self.ndim is not None and arr.ndim != self.ndim:
             raise ValueError(f"expected {self.ndim} dimensions, got shape {arr.shape}")
-        if self.trailing and tuple(arr.shape[arr.ndim - len(self.trailing):]) != self.trailing:
+        if self.trailing and tuple(arr.shape[arr.ndim - len(self.trailing) :]) != self.trailing:
             want = ", ".join(["N"] * (arr.ndim - len(self.trailing)) + [str(t) for t in self.trailing])
             raise ValueError(f"expected shape ({want}), got {arr.shape}")
         if arr.size < self.min_size:
@@ -155,8 +167,9 @@ def _serialize_array(arr: np.ndarray, info: Any) -> str:
     return f"<ndarray {arr.dtype} {tuple(arr.shape)}>"
 
 
-def array_field(*dtypes: str, ndim: int | None = None, trailing: tuple[int, ...] = (), finite: bool = False,
-           min_size: int = 0) -> ArraySpec:
+def array_field(
+    *dtypes: str, ndim: int | None = None, trailing: tuple[int, ...] = (), finite: bool = False, min_size: int = 0
+) -> ArraySpec:
     return ArraySpec(tuple(dtypes), ndim, trailing, finite, min_size)
 
 

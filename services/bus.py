@@ -156,14 +156,24 @@ def add_bus_arguments(p: argparse.ArgumentParser, listen: str = EPHEMERAL, conne
     """--mode, --listen, --connect, --multicast, --zenoh-config, --shm (defaults per node)."""
     g = p.add_argument_group("bus (zenoh)")
     g.add_argument("--mode", choices=("peer", "router", "client"), help="zenoh mode (default peer)")
-    g.add_argument("--listen", action="append", metavar="ENDPOINT",
-                   help=f"endpoint to listen on, repeatable (default {listen}); 'none' for no listener")
-    g.add_argument("--connect", action="append", metavar="ENDPOINT",
-                   help=f"endpoint to connect to, repeatable (default {connect or 'none'}); 'none' for none")
+    g.add_argument(
+        "--listen",
+        action="append",
+        metavar="ENDPOINT",
+        help=f"endpoint to listen on, repeatable (default {listen}); 'none' for no listener",
+    )
+    g.add_argument(
+        "--connect",
+        action="append",
+        metavar="ENDPOINT",
+        help=f"endpoint to connect to, repeatable (default {connect or 'none'}); 'none' for none",
+    )
     g.add_argument("--multicast", action="store_true", help="enable multicast scouting (off by default)")
     g.add_argument("--zenoh-config", metavar="FILE", help="zenoh JSON5 config file (flags above override it)")
-    g.add_argument("--shm", help="shared memory: auto (512 MiB pool if /dev/shm allows), off, "
-                                 "or the pool size in MiB (default auto)")
+    g.add_argument(
+        "--shm",
+        help="shared memory: auto (512 MiB pool if /dev/shm allows), off, or the pool size in MiB (default auto)",
+    )
     g.add_argument("--connect-timeout-ms", type=int, help="connect/timeout_ms (default 2000)")
     p.set_defaults(_bus_listen=listen, _bus_connect=connect)
 
@@ -180,12 +190,15 @@ def bus_from_args(args: argparse.Namespace) -> BusConfig:
     """BusConfig from the arguments of :func:`add_bus_arguments`: with ``--zenoh-config``, what no flag
     sets comes from the file; without, the defaults of the module doc."""
     file = args.zenoh_config
-    return BusConfig(mode=args.mode or (None if file else "peer"),
-                     listen=_endpoints(args.listen, args._bus_listen, bool(file)),
-                     connect=_endpoints(args.connect, args._bus_connect, bool(file)),
-                     multicast=True if args.multicast else (None if file else False), config_file=file,
-                     shm=args.shm or (None if file else "auto"),
-                     connect_timeout_ms=args.connect_timeout_ms or (None if file else 2000))
+    return BusConfig(
+        mode=args.mode or (None if file else "peer"),
+        listen=_endpoints(args.listen, args._bus_listen, bool(file)),
+        connect=_endpoints(args.connect, args._bus_connect, bool(file)),
+        multicast=True if args.multicast else (None if file else False),
+        config_file=file,
+        shm=args.shm or (None if file else "auto"),
+        connect_timeout_ms=args.connect_timeout_ms or (None if file else 2000),
+    )
 
 
 def free_port() -> int:

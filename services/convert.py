@@ -38,25 +38,42 @@ def finite(v: float, cap: float = 1e300) -> float:
 
 def numeric_state(fp: Fingerprint) -> dict[str, float]:
     """The finite numeric entries of a fingerprint's state q (booleans and strings left out)."""
-    return {k: float(v) for k, v in fp.state.items()
-            if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)}
+    return {
+        k: float(v)
+        for k, v in fp.state.items()
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    }
 
 
 def detection(d: CoreDetection, state: dict[str, float], truth_error_m: float | None) -> Detection:
-    return Detection(fingerprint=d.fingerprint, state=state, position_m=tuple(np.asarray(d.position_m, float).tolist()),
-                     gamma_max=max(float(d.gamma_max), 0.0), contrast_c_gamma=finite(d.c_gamma),
-                     contrast_c=finite(d.c_pfa), contrast_local=finite(d.c_local),
-                     pfa=float(np.clip(d.pfa, 0.0, 1.0)),
-                     precision_m=(float(d.precision_m[0]), float(d.precision_m[1])), truth_error_m=truth_error_m)
+    return Detection(
+        fingerprint=d.fingerprint,
+        state=state,
+        position_m=tuple(np.asarray(d.position_m, float).tolist()),
+        gamma_max=max(float(d.gamma_max), 0.0),
+        contrast_c_gamma=finite(d.c_gamma),
+        contrast_c=finite(d.c_pfa),
+        contrast_local=finite(d.c_local),
+        pfa=float(np.clip(d.pfa, 0.0, 1.0)),
+        precision_m=(float(d.precision_m[0]), float(d.precision_m[1])),
+        truth_error_m=truth_error_m,
+    )
 
 
 def track(tr: TrackState) -> Track:
     c = np.asarray(tr.covariance_m2, float)
     c = 0.5 * (c + c.T)
-    return Track(id=tr.track_id, fingerprint=tr.fingerprint, position_m=tuple(tr.position_m),
-                 velocity_m_s=tuple(tr.velocity_m_s), covariance=tuple(tuple(row) for row in c.tolist()),
-                 confidence=float(np.clip(tr.confidence, 0.0, 1.0)), age=tr.age, status=tr.status,
-                 pfa=float(np.clip(tr.pfa, 0.0, 1.0)))
+    return Track(
+        id=tr.track_id,
+        fingerprint=tr.fingerprint,
+        position_m=tuple(tr.position_m),
+        velocity_m_s=tuple(tr.velocity_m_s),
+        covariance=tuple(tuple(row) for row in c.tolist()),
+        confidence=float(np.clip(tr.confidence, 0.0, 1.0)),
+        age=tr.age,
+        status=tr.status,
+        pfa=float(np.clip(tr.pfa, 0.0, 1.0)),
+    )
 
 
 def frame_messages(res: FrameResult, frame_index: int, timestamp: float) -> dict[str, Any]:
@@ -73,8 +90,21 @@ def frame_messages(res: FrameResult, frame_index: int, timestamp: float) -> dict
         fp = res.fingerprints[name]
         g_m = float(np.sqrt(np.mean(np.square(g, dtype=np.float64))))
         norm = Normalisation(band_hz=res.band, r_energy=r_energy, f_energy=fp.norm2, gamma_m=g_m)
-        gammas.append(GammaMap(frame_index=fi, timestamp=ts, fingerprint=name, state=states[name], grid=wgrid,
-                               gamma=g, normalisation=norm))
+        gammas.append(
+            GammaMap(
+                frame_index=fi,
+                timestamp=ts,
+                fingerprint=name,
+                state=states[name],
+                grid=wgrid,
+                gamma=g,
+                normalisation=norm,
+            )
+        )
     image = None if res.image is None else ConfocalImage(frame_index=fi, timestamp=ts, grid=wgrid, image=res.image)
-    return {"image": image, "gamma": gammas, "tracks": Tracks(frame_index=fi, timestamp=ts, tracks=tracks),
-            "detections": Detections(frame_index=fi, timestamp=ts, detections=dets)}
+    return {
+        "image": image,
+        "gamma": gammas,
+        "tracks": Tracks(frame_index=fi, timestamp=ts, tracks=tracks),
+        "detections": Detections(frame_index=fi, timestamp=ts, detections=dets),
+    }

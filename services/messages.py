@@ -150,12 +150,19 @@ class Detection(_Model):
     gamma_max: float = Field(ge=0, description="Peak likelihood index γ (≤ 1).")
     contrast_c_gamma: float = Field(ge=0, description="C_γ = γ(target) / mean γ outside the target.")
     contrast_c: float = Field(ge=0, description="C = (γ_max/γ_M)², γ_M = √⟨γ²⟩ over the map (the paper's S6 C).")
-    contrast_local: float | None = Field(default=None, ge=0,
-                                         description="γ/γ_M(r) against the local null level at the peak "
-                                                     "(the contrast the PFA is computed from; schema 1.1).")
-    pfa: float = Field(ge=0, le=1, description="Calibrated false-alarm probability: that target-free γ reaches "
-                                               "this local contrast anywhere in the searched region "
-                                               "(docs/design.md §4.9).")
+    contrast_local: float | None = Field(
+        default=None,
+        ge=0,
+        description="γ/γ_M(r) against the local null level at the peak "
+        "(the contrast the PFA is computed from; schema 1.1).",
+    )
+    pfa: float = Field(
+        ge=0,
+        le=1,
+        description="Calibrated false-alarm probability: that target-free γ reaches "
+        "this local contrast anywhere in the searched region "
+        "(docs/design.md §4.9).",
+    )
     precision_m: tuple[float, float] = Field(description="Cramér–Rao precision [lateral, axial], m.")
     truth_error_m: float | None = Field(default=None, ge=0, description="Distance to ground truth, m.")
 
@@ -177,10 +184,11 @@ class Track(_Model):
     confidence: float = Field(ge=0, le=1)
     age: int = Field(ge=0, description="Frames since the track started.")
     status: Literal["tentative", "confirmed", "coasting", "lost"] | None = Field(
-        default=None, description="tentative → confirmed → coasting (no significant measurement) → lost "
-                                  "(schema 1.1).")
-    pfa: float | None = Field(default=None, ge=0, le=1,
-                              description="Calibrated PFA of the last accepted measurement (schema 1.1).")
+        default=None, description="tentative → confirmed → coasting (no significant measurement) → lost (schema 1.1)."
+    )
+    pfa: float | None = Field(
+        default=None, ge=0, le=1, description="Calibrated PFA of the last accepted measurement (schema 1.1)."
+    )
 
     @model_validator(mode="after")
     def _check(self) -> Track:
@@ -223,8 +231,12 @@ class RFFrame(Message):
         description="RF data (N_u, N_θ, N_t), float32 or int16."
     )
     truth: dict[str, JsonValue] | None = Field(default=None, description="Ground truth (free JSON).")
-    prf: float | None = Field(default=None, gt=0, description="Pulse repetition frequency, Hz: the transmits fire in "
-                                                              "order every 1/prf (None: unknown). Since 1.1.")
+    prf: float | None = Field(
+        default=None,
+        gt=0,
+        description="Pulse repetition frequency, Hz: the transmits fire in "
+        "order every 1/prf (None: unknown). Since 1.1.",
+    )
 
     @model_validator(mode="after")
     def _check(self) -> RFFrame:
@@ -242,10 +254,18 @@ class RFFrame(Message):
         """From an ``fpcore.acquisition.Acquisition`` (arrays are shared, not copied)."""
         p = acq.probe
         return cls(
-            frame_index=acq.frame_index, timestamp=acq.timestamp, fs=acq.fs, t0=acq.t0, c0=acq.c0,
-            probe=Probe(positions=p.positions, pitch=p.pitch, centre_frequency=p.centre_frequency,
-                        bandwidth=p.bandwidth),
-            sines=acq.sequence.sines, rf=acq.rf, truth=dict(acq.truth) or None, prf=acq.sequence.prf,
+            frame_index=acq.frame_index,
+            timestamp=acq.timestamp,
+            fs=acq.fs,
+            t0=acq.t0,
+            c0=acq.c0,
+            probe=Probe(
+                positions=p.positions, pitch=p.pitch, centre_frequency=p.centre_frequency, bandwidth=p.bandwidth
+            ),
+            sines=acq.sequence.sines,
+            rf=acq.rf,
+            truth=dict(acq.truth) or None,
+            prf=acq.sequence.prf,
         )
 
     def to_acquisition(self) -> Acquisition:
@@ -255,10 +275,15 @@ class RFFrame(Message):
 
         p = self.probe
         return Acquisition(
-            rf=self.rf, fs=self.fs, t0=self.t0, c0=self.c0,
+            rf=self.rf,
+            fs=self.fs,
+            t0=self.t0,
+            c0=self.c0,
             probe=CoreProbe(p.positions, p.pitch, p.centre_frequency, p.bandwidth),
-            sequence=PlaneWaveSequence(self.sines, prf=self.prf), frame_index=self.frame_index,
-            timestamp=self.timestamp, truth=dict(self.truth or {}),
+            sequence=PlaneWaveSequence(self.sines, prf=self.prf),
+            frame_index=self.frame_index,
+            timestamp=self.timestamp,
+            truth=dict(self.truth or {}),
         )
 
 
@@ -356,19 +381,46 @@ def examples() -> dict[str, Message]:
 
     n_u, n_theta, n_t = 4, 3, 16
     x = (np.arange(n_u) - (n_u - 1) / 2) * 3e-4
-    probe = Probe(positions=np.stack([x, np.zeros(n_u), np.zeros(n_u)], axis=1), pitch=3e-4,
-                  centre_frequency=2.2e6, bandwidth=0.8e6)
+    probe = Probe(
+        positions=np.stack([x, np.zeros(n_u), np.zeros(n_u)], axis=1),
+        pitch=3e-4,
+        centre_frequency=2.2e6,
+        bandwidth=0.8e6,
+    )
     sines = np.stack([np.linspace(-0.2, 0.2, n_theta), np.zeros(n_theta)], axis=1)
     rf = np.sin(np.arange(n_u * n_theta * n_t, dtype=np.float32)).reshape(n_u, n_theta, n_t)
     grid = Grid(x=np.linspace(-1e-3, 1e-3, 5), z=np.linspace(9e-3, 11e-3, 6))
     ramp = np.linspace(0, 1, 30, dtype=np.float32).reshape(grid.shape)
-    det = Detection(fingerprint="sphere_10mm", position_m=(0.0, 0.0, 0.01), gamma_max=0.7, contrast_c_gamma=8.0,
-                    contrast_c=30.0, pfa=1e-6, precision_m=(1e-4, 2e-5))
-    track = Track(id=1, position_m=(0.0, 0.0, 0.01), velocity_m_s=(0.0, 0.0, 1e-3),
-                  covariance=((1e-8, 0.0, 0.0), (0.0, 1e-8, 0.0), (0.0, 0.0, 1e-8)), confidence=0.8, age=3)
+    det = Detection(
+        fingerprint="sphere_10mm",
+        position_m=(0.0, 0.0, 0.01),
+        gamma_max=0.7,
+        contrast_c_gamma=8.0,
+        contrast_c=30.0,
+        pfa=1e-6,
+        precision_m=(1e-4, 2e-5),
+    )
+    track = Track(
+        id=1,
+        position_m=(0.0, 0.0, 0.01),
+        velocity_m_s=(0.0, 0.0, 1e-3),
+        covariance=((1e-8, 0.0, 0.0), (0.0, 1e-8, 0.0), (0.0, 0.0, 1e-8)),
+        confidence=0.8,
+        age=3,
+    )
     msgs: list[Message] = [
-        RFFrame(frame_index=1, timestamp=0.1, fs=20e6, t0=0.0, c0=1500.0, probe=probe, sines=sines, rf=rf, prf=5e3,
-                truth={"position_m": [0.0, 0.0, 0.01]}),
+        RFFrame(
+            frame_index=1,
+            timestamp=0.1,
+            fs=20e6,
+            t0=0.0,
+            c0=1500.0,
+            probe=probe,
+            sines=sines,
+            rf=rf,
+            prf=5e3,
+            truth={"position_m": [0.0, 0.0, 0.01]},
+        ),
         GammaMap(frame_index=1, timestamp=0.1, fingerprint="sphere_10mm", grid=grid, gamma=ramp),
         ConfocalImage(frame_index=1, timestamp=0.1, grid=grid, image=ramp),
         Detections(frame_index=1, timestamp=0.1, detections=[det]),

@@ -19,8 +19,14 @@ if TYPE_CHECKING:  # pragma: no cover
     from fpcore import Imager
     from fpcore.acquisition import Acquisition
 
-__all__ = ["build_fingerprint", "build_model", "calibration_position", "check_calibration", "check_r0",
-           "recorded_position"]
+__all__ = [
+    "build_fingerprint",
+    "build_model",
+    "calibration_position",
+    "check_calibration",
+    "check_r0",
+    "recorded_position",
+]
 
 
 def build_model(spec: str, pw: PlaneWaveData, r0: np.ndarray = (0.0, 0.0, 0.0), name: str | None = None) -> Fingerprint:
@@ -33,18 +39,28 @@ def build_model(spec: str, pw: PlaneWaveData, r0: np.ndarray = (0.0, 0.0, 0.0), 
         params = dict(kv.split("=", 1) for kv in rest.split(",") if "=" in kv)
         if "L" not in params:
             raise ValueError("model: mirror needs L, e.g. mirror:L=2mm,alpha=10")
-        return mirror_fingerprint(pw.freqs, pw.out_sines, pw.in_sines, pw.c0, parse_length(params["L"], "model L"),
-                                  np.deg2rad(float(params.get("alpha", 0.0))), r0=r0, name=name or "mirror")
+        return mirror_fingerprint(
+            pw.freqs,
+            pw.out_sines,
+            pw.in_sines,
+            pw.c0,
+            parse_length(params["L"], "model L"),
+            np.deg2rad(float(params.get("alpha", 0.0))),
+            r0=r0,
+            name=name or "mirror",
+        )
     raise ValueError(f"model: unknown model {kind!r} (expected 'point' or 'mirror:L=…,alpha=…')")
 
 
 def check_calibration(cal: Acquisition, data: Acquisition) -> None:
     """The calibration must come from the same probe, sequence, sampling and sound speed."""
-    if cal.probe.n_elements != data.probe.n_elements or not np.allclose(cal.probe.positions, data.probe.positions,
-                                                                         atol=1e-7):
+    if cal.probe.n_elements != data.probe.n_elements or not np.allclose(
+        cal.probe.positions, data.probe.positions, atol=1e-7
+    ):
         raise ValueError("calibration probe: element positions differ from the data's (same probe expected)")
-    if cal.sequence.n_waves != data.sequence.n_waves or not np.allclose(cal.sequence.sines, data.sequence.sines,
-                                                                          atol=1e-9):
+    if cal.sequence.n_waves != data.sequence.n_waves or not np.allclose(
+        cal.sequence.sines, data.sequence.sines, atol=1e-9
+    ):
         raise ValueError("calibration sequence: plane-wave angles differ from the data's (same sequence expected)")
     if abs(cal.fs - data.fs) > 1e-6 * data.fs:
         raise ValueError(f"calibration sampling_frequency: {cal.fs:g} Hz, data has {data.fs:g} Hz (same expected)")
@@ -76,9 +92,11 @@ def check_r0(r0: np.ndarray, cal: Acquisition, resolution: tuple[float, float], 
     lateral, axial = float(np.hypot(d[0], d[1])), abs(float(d[2]))
     if lateral <= resolution[0] and axial <= resolution[1]:
         return None
-    msg = (f"--r0: ({', '.join(f'{v * 1e3:.2f}' for v in r0)}) mm differs from the position the calibration "
-           f"records, ({', '.join(f'{v * 1e3:.2f}' for v in rec)}) mm, by {lateral * 1e3:.2f} mm laterally and "
-           f"{axial * 1e3:.2f} mm axially (resolution cell {resolution[0] * 1e3:.2f} × {resolution[1] * 1e3:.2f} mm)")
+    msg = (
+        f"--r0: ({', '.join(f'{v * 1e3:.2f}' for v in r0)}) mm differs from the position the calibration "
+        f"records, ({', '.join(f'{v * 1e3:.2f}' for v in rec)}) mm, by {lateral * 1e3:.2f} mm laterally and "
+        f"{axial * 1e3:.2f} mm axially (resolution cell {resolution[0] * 1e3:.2f} × {resolution[1] * 1e3:.2f} mm)"
+    )
     if not force:
         raise ValueError(msg + "; every detection would be displaced by the difference (use --force to proceed)")
     return msg
@@ -102,8 +120,15 @@ def calibration_position(spec: FingerprintSpec) -> tuple[np.ndarray, float | Non
     return r0, rec_d if spec.diameter is None else float(spec.diameter)
 
 
-def build_fingerprint(spec: FingerprintSpec, acq: Acquisition, pw: PlaneWaveData | None, imager: Imager,
-                      band: tuple[float, float], n_freq: int | None, svd_threshold: float) -> Fingerprint:
+def build_fingerprint(
+    spec: FingerprintSpec,
+    acq: Acquisition,
+    pw: PlaneWaveData | None,
+    imager: Imager,
+    band: tuple[float, float],
+    n_freq: int | None,
+    svd_threshold: float,
+) -> Fingerprint:
     """The fingerprint of ``spec`` for data of the geometry of ``acq`` (plane waves ``pw`` from ``imager``,
     computed here for a model when None): a checked calibration (``from_calibration``) or a model centred
     at the spec's r0 (default: the grid's centre). ValueError when the calibration does not match the
@@ -112,8 +137,17 @@ def build_fingerprint(spec: FingerprintSpec, acq: Acquisition, pw: PlaneWaveData
         cal = spec.calibration
         check_calibration(cal, acq)
         r0, diameter = calibration_position(spec)
-        return from_calibration(cal, r0, imager.out_sines_for(cal), band, n_freq, diameter=diameter,
-                                svd_threshold=svd_threshold, name=spec.name, gate=spec.gate)
+        return from_calibration(
+            cal,
+            r0,
+            imager.out_sines_for(cal),
+            band,
+            n_freq,
+            diameter=diameter,
+            svd_threshold=svd_threshold,
+            name=spec.name,
+            gate=spec.gate,
+        )
     r0 = np.asarray(spec.r0, float) if spec.r0 is not None else imager.grid.centre_index_point()
     if r0.shape == (2,):
         r0 = np.array([r0[0], 0.0, r0[1]])

@@ -108,13 +108,19 @@ class FrameResult:
 
 def geometry_key(acq: Acquisition) -> tuple:
     """What a set-up depends on: element positions, transmit sines, sampling, record length, sound speed."""
-    return (acq.probe.positions.tobytes(), acq.sequence.sines.tobytes(), float(acq.fs), acq.n_samples,
-            float(acq.c0))
+    return (acq.probe.positions.tobytes(), acq.sequence.sines.tobytes(), float(acq.fs), acq.n_samples, float(acq.c0))
 
 
-def make_imager(acq: Acquisition, band: tuple[float, float], grid: Grid | None = None, *,
-                ranges: dict[str, Any] | None = None, n_freq: int | None = None, n_out: int | None = None,
-                eps: float | None = None) -> Imager:
+def make_imager(
+    acq: Acquisition,
+    band: tuple[float, float],
+    grid: Grid | None = None,
+    *,
+    ranges: dict[str, Any] | None = None,
+    n_freq: int | None = None,
+    n_out: int | None = None,
+    eps: float | None = None,
+) -> Imager:
     """An Imager for frames like ``acq``: ``grid``, else ``Grid.for_acquisition`` with ``ranges``
     (x_range, y_range, z_range, spacing); ``n_out`` output directions per lateral axis (None: the
     elements); ``eps`` the NUFFT tolerance (None: fpcore's default)."""
@@ -123,6 +129,7 @@ def make_imager(acq: Acquisition, band: tuple[float, float], grid: Grid | None =
     out_sines = None
     if n_out:
         from fpcore import output_sines
+
         out_sines = output_sines(acq.probe, acq.c0, band[1], n=n_out)
     extra = {} if eps is None else {"eps": eps}
     return Imager(ImagingConfig(grid, band, n_freq, out_sines, **extra))
@@ -137,8 +144,9 @@ def truth_positions(truth: Truth | Mapping[str, Any] | None) -> list[tuple[str |
     return [(t.name, t.position) for t in view.targets or [] if t.position_m is not None]
 
 
-def truth_error(position: np.ndarray, truths: list[tuple[str | None, np.ndarray]],
-                name: str | None = None) -> float | None:
+def truth_error(
+    position: np.ndarray, truths: list[tuple[str | None, np.ndarray]], name: str | None = None
+) -> float | None:
     """Distance to the nearest truth target (those named ``name`` if there are any), None without truth."""
     pos = np.asarray(position, float)
     named = [t for n, t in truths if name is not None and n == name]
@@ -151,28 +159,55 @@ def resolution(grid: Grid, acq: Acquisition, band: tuple[float, float]) -> tuple
     return resolution_of(grid, acq, band)
 
 
-def null_for(level: NullLevel | None, gamma: np.ndarray, grid: Grid, acq: Acquisition, pw: PlaneWaveData,
-             fp: Fingerprint, band: tuple[float, float]) -> NullModel:
+def null_for(
+    level: NullLevel | None,
+    gamma: np.ndarray,
+    grid: Grid,
+    acq: Acquisition,
+    pw: PlaneWaveData,
+    fp: Fingerprint,
+    band: tuple[float, float],
+) -> NullModel:
     """The local null model of one γ-map with `level`'s physical null level (``fpcore.locate.null_of``)."""
     return null_of(gamma, grid, acq, pw, fp, band, level)
 
 
-def find_targets(gamma: np.ndarray, grid: Grid, acq: Acquisition, band: tuple[float, float], name: str,
-                 n_peaks: int = 1, interior: bool = False, null: NullModel | None = None,
-                 max_pfa: float | None = DEFAULT_MAX_PFA) -> list[Detection]:
+def find_targets(
+    gamma: np.ndarray,
+    grid: Grid,
+    acq: Acquisition,
+    band: tuple[float, float],
+    name: str,
+    n_peaks: int = 1,
+    interior: bool = False,
+    null: NullModel | None = None,
+    max_pfa: float | None = DEFAULT_MAX_PFA,
+) -> list[Detection]:
     """Detections in one γ-map (``fpcore.detect``: C_γ, C, calibrated PFA, Cramér–Rao precision) against
     the map's null model (`null_for`; default: the CFAR alone), kept when PFA < ``max_pfa``;
     ``interior`` skips maxima within the diffraction resolution of the grid's border."""
     lam = acq.c0 / acq.probe.centre_frequency
-    return detect(gamma, grid, lam, acq.probe.aperture[0], band[1] - band[0], acq.c0, name=name,
-                  n_peaks=n_peaks, interior=interior, null=null, max_pfa=max_pfa)
+    return detect(
+        gamma,
+        grid,
+        lam,
+        acq.probe.aperture[0],
+        band[1] - band[0],
+        acq.c0,
+        name=name,
+        n_peaks=n_peaks,
+        interior=interior,
+        null=null,
+        max_pfa=max_pfa,
+    )
 
 
 class Pipeline:
     """Frames in, :class:`FrameResult` out; holds the fingerprint dictionary (a ``DictionaryHost``)."""
 
-    def __init__(self, config: PipelineConfig,
-                 fingerprints: list[FingerprintSpec] | tuple[FingerprintSpec, ...] = ()) -> None:
+    def __init__(
+        self, config: PipelineConfig, fingerprints: list[FingerprintSpec] | tuple[FingerprintSpec, ...] = ()
+    ) -> None:
         self.cfg = config
         self._entries: dict[str, Entry] = {s.name: Entry(s) for s in fingerprints}
         self.lock = threading.RLock()
@@ -203,8 +238,9 @@ class Pipeline:
             cfg = self.cfg
             band = cfg.band or acq.default_band()
             ranges = {"x_range": cfg.x_range, "y_range": cfg.y_range, "z_range": cfg.z_range, "spacing": cfg.spacing}
-            self._imager = imager = make_imager(acq, band, cfg.grid, ranges=ranges, n_freq=cfg.n_freq,
-                                                n_out=cfg.n_out, eps=cfg.eps)
+            self._imager = imager = make_imager(
+                acq, band, cfg.grid, ranges=ranges, n_freq=cfg.n_freq, n_out=cfg.n_out, eps=cfg.eps
+            )
             grid = imager.grid
             self._level = NullLevel(imager)
             self._band = band
@@ -212,9 +248,18 @@ class Pipeline:
             self._ref = acq
             lam = acq.c0 / acq.probe.centre_frequency
             # One track per fingerprint and expected target (cfg.n_peaks): a calibration describes one object.
-            self._tracker = (Tracker(grid, lam, acq.probe.aperture[0], band[1] - band[0], acq.c0,
-                                     TrackerConfig(max_tracks_per_map=max(1, cfg.n_peaks),
-                                                   integrate_frames=cfg.track_integrate)) if cfg.track else None)
+            self._tracker = (
+                Tracker(
+                    grid,
+                    lam,
+                    acq.probe.aperture[0],
+                    band[1] - band[0],
+                    acq.c0,
+                    TrackerConfig(max_tracks_per_map=max(1, cfg.n_peaks), integrate_frames=cfg.track_integrate),
+                )
+                if cfg.track
+                else None
+            )
             pw = imager.plane_waves(acq)
             imager.kernel(pw)  # NUFFT plan (FFTW planning: seconds) before the first frame is timed
             for entry in self._entries.values():
@@ -226,9 +271,16 @@ class Pipeline:
                     except ValueError as exc:
                         entry.fp, entry.error = None, str(exc)
             self.setup_s += time.perf_counter() - t0
-            log.info("set up for %s elements × %s waves × %s samples: band %.2f–%.2f MHz, grid %s, dictionary %s",
-                     acq.probe.n_elements, acq.sequence.n_waves, acq.n_samples, band[0] / 1e6, band[1] / 1e6,
-                     grid.shape, list(self._entries))
+            log.info(
+                "set up for %s elements × %s waves × %s samples: band %.2f–%.2f MHz, grid %s, dictionary %s",
+                acq.probe.n_elements,
+                acq.sequence.n_waves,
+                acq.n_samples,
+                band[0] / 1e6,
+                band[1] / 1e6,
+                grid.shape,
+                list(self._entries),
+            )
 
     def _build(self, entry: Entry, acq: Acquisition, pw: PlaneWaveData) -> None:
         imager, band = self._imager, self._band
@@ -316,9 +368,13 @@ class Pipeline:
     def params(self) -> dict[str, Any]:
         c = self.cfg
         grid = self._imager.grid if self._imager is not None else c.grid
-        return {"band_hz": list(self._band or c.band or []) or None, "n_freq": c.n_freq,
-                "svd_threshold": c.svd_threshold, "n_peaks": c.n_peaks,
-                "grid_shape": list(grid.shape) if grid is not None else None}
+        return {
+            "band_hz": list(self._band or c.band or []) or None,
+            "n_freq": c.n_freq,
+            "svd_threshold": c.svd_threshold,
+            "n_peaks": c.n_peaks,
+            "grid_shape": list(grid.shape) if grid is not None else None,
+        }
 
     def describe(self) -> dict[str, Any]:
         with self.lock:
@@ -349,8 +405,19 @@ class Pipeline:
             for name, g in gammas.items():
                 for d in find_targets(g, grid, acq, band, name, cfg.n_peaks, cfg.interior, nulls[name], cfg.max_pfa):
                     dets.append((d, truth_error(np.asarray(d.position_m, float), truths, name)))
-            tracks = (self._tracker.update(gammas, acq.timestamp, nulls=nulls)
-                      if self._tracker is not None and gammas else [])
+            tracks = (
+                self._tracker.update(gammas, acq.timestamp, nulls=nulls) if self._tracker is not None and gammas else []
+            )
             t3 = time.perf_counter()
-        return FrameResult(acq, pw, band, grid, fps, gammas, image, dets, tracks,
-                           {"spectrum_projection": t1 - t0, "gamma_kernel": t2 - t1, "detection": t3 - t2})
+        return FrameResult(
+            acq,
+            pw,
+            band,
+            grid,
+            fps,
+            gammas,
+            image,
+            dets,
+            tracks,
+            {"spectrum_projection": t1 - t0, "gamma_kernel": t2 - t1, "detection": t3 - t2},
+        )

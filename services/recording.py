@@ -43,10 +43,14 @@ __all__ = [
 log = logging.getLogger("fp.recording")
 
 MESSAGE_ENCODING = "fpwire"
-UNKNOWN_SCHEMA = json.dumps({
-    "$schema": "https://json-schema.org/draft/2020-12/schema", "title": "unknown",
-    "description": "Header unreadable or of an unsupported schema/version; the payload is recorded raw.",
-}, indent=2).encode()
+UNKNOWN_SCHEMA = json.dumps(
+    {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": "unknown",
+        "description": "Header unreadable or of an unsupported schema/version; the payload is recorded raw.",
+    },
+    indent=2,
+).encode()
 #: chunk compression of the recorder (``--compression``).
 COMPRESSION = {"none": CompressionType.NONE, "zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4}
 
@@ -106,8 +110,9 @@ def copy_messages(writer: Writer, messages: Iterable[RawMessage]) -> Counter[str
                 if schema.id not in schemas:
                     schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
                 sid = schemas[schema.id]
-            channels[channel.id] = writer.register_channel(channel.topic, channel.message_encoding, sid,
-                                                           dict(channel.metadata))
+            channels[channel.id] = writer.register_channel(
+                channel.topic, channel.message_encoding, sid, dict(channel.metadata)
+            )
         writer.add_message(channels[channel.id], msg.log_time, msg.data, msg.publish_time, msg.sequence)
         by_key[channel.topic] += 1
     return by_key
@@ -136,6 +141,11 @@ def recover(broken: str | Path, fixed: str | Path | None = None) -> dict[str, An
         w.start(profile="", library="fingerprint services.recording (recovered)")
         by_key = copy_messages(w, timed(iter_raw(broken, report)))
         w.finish()
-    report.update(messages=sum(by_key.values()), by_key=dict(by_key), complete=report["error"] is None,
-                  first_log_time_ns=span.get("first"), last_log_time_ns=span.get("last"))
+    report.update(
+        messages=sum(by_key.values()),
+        by_key=dict(by_key),
+        complete=report["error"] is None,
+        first_log_time_ns=span.get("first"),
+        last_log_time_ns=span.get("last"),
+    )
     return report

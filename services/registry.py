@@ -89,9 +89,14 @@ class Entry:
         source = "calibration" if self.spec.calibration is not None else f"model:{self.spec.model}"
         d: dict[str, Any] = {"name": self.spec.name, "source": source, "built": fp is not None, "error": self.error}
         if fp is not None:
-            d.update(provenance=fp.provenance, r0_m=[float(v) for v in fp.r0], n_s=float(fp.n_s),
-                     n_t=None if fp.n_t is None else float(fp.n_t), shape=list(fp.data.shape),
-                     state={k: v for k, v in fp.state.items() if isinstance(v, (int, float, str))})
+            d.update(
+                provenance=fp.provenance,
+                r0_m=[float(v) for v in fp.r0],
+                n_s=float(fp.n_s),
+                n_t=None if fp.n_t is None else float(fp.n_t),
+                shape=list(fp.data.shape),
+                state={k: v for k, v in fp.state.items() if isinstance(v, (int, float, str))},
+            )
         return d
 
 
@@ -121,8 +126,12 @@ def spec_from_request(name: str, payload: bytes, attachment: bytes) -> Fingerpri
             raise ValueError(f"add: calibration payload refused: {exc}") from None
         opts = json.loads(attachment.decode() or "{}") if attachment else {}
         r0 = opts.get("r0_m")
-        return FingerprintSpec(name, calibration=frame.to_acquisition(), r0=None if r0 is None else tuple(r0),
-                               diameter=opts.get("diameter_m"))
+        return FingerprintSpec(
+            name,
+            calibration=frame.to_acquisition(),
+            r0=None if r0 is None else tuple(r0),
+            diameter=opts.get("diameter_m"),
+        )
     try:
         doc = json.loads(payload.decode() or "{}")
     except (UnicodeDecodeError, json.JSONDecodeError):
@@ -217,9 +226,15 @@ def _bytes(z: Any) -> bytes:
     return z.to_bytes() if z is not None else b""
 
 
-def dictionary_request(session: zenoh.Session, rig: str, op: str = "list", name: str | None = None,
-                       payload: bytes | dict[str, Any] | None = None, options: dict[str, Any] | None = None,
-                       timeout: float = 30.0) -> dict[str, Any]:
+def dictionary_request(
+    session: zenoh.Session,
+    rig: str,
+    op: str = "list",
+    name: str | None = None,
+    payload: bytes | dict[str, Any] | None = None,
+    options: dict[str, Any] | None = None,
+    timeout: float = 30.0,
+) -> dict[str, Any]:
     """Client of the dictionary queryable: ``op`` is list, get, add, remove or set. Returns the JSON reply
     (``{"ok": False, "error": ...}`` on refusal; ``{"ok": False, "error": "no reply"}`` on timeout)."""
     key = Keys(rig).dictionary_op(op, name)

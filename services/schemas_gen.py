@@ -70,8 +70,9 @@ def stale(directory: Path = DEFAULT_DIR) -> list[str]:
             problems.append(f"{fname}: missing")
         elif path.read_text(encoding="utf-8") != text:
             problems.append(f"{fname}: stale")
-    problems += [f"{p.name}: not generated from a model" for p in sorted(directory.glob("*.json"))
-                 if p.name not in expected]
+    problems += [
+        f"{p.name}: not generated from a model" for p in sorted(directory.glob("*.json")) if p.name not in expected
+    ]
     return problems
 
 

@@ -118,8 +118,16 @@ class SimulatorSource(AcquisitionSource):
     (the simulator is exact, not fast: seconds per 3D frame).
     """
 
-    def __init__(self, scenario: str | Scenario, n_frames: int | None = None, quick: bool = True, seed: int = 0,
-                 repeat: int = 1, cache: bool = True, **kwargs: Any) -> None:
+    def __init__(
+        self,
+        scenario: str | Scenario,
+        n_frames: int | None = None,
+        quick: bool = True,
+        seed: int = 0,
+        repeat: int = 1,
+        cache: bool = True,
+        **kwargs: Any,
+    ) -> None:
         from fpcore import simulate
 
         sc = simulate.scenario(scenario, quick=quick, seed=seed, **kwargs) if isinstance(scenario, str) else scenario
@@ -159,8 +167,11 @@ class SimulatorSource(AcquisitionSource):
             cal = self.scenario.calibration(name)
             truth = cal.ground_truth
             x, y, z = truth.r0  # a simulated calibration records where its target is
-            out.append(FingerprintSpec(name, calibration=cal, r0=(float(x), float(y), float(z)),
-                                       diameter=float(truth.diameter_m or 0.0)))
+            out.append(
+                FingerprintSpec(
+                    name, calibration=cal, r0=(float(x), float(y), float(z)), diameter=float(truth.diameter_m or 0.0)
+                )
+            )
         return out
 
 
@@ -255,8 +266,15 @@ class IngestSource:
                 yield item
 
 
-def born_frames(n_frames: int, n_elements: int = 32, n_waves: int = 5, n_t: int = 400, seed: int = 0,
-                speckle: int = 60, t0: float = 10e-6) -> tuple[list[Acquisition], Acquisition]:
+def born_frames(
+    n_frames: int,
+    n_elements: int = 32,
+    n_waves: int = 5,
+    n_t: int = 400,
+    seed: int = 0,
+    speckle: int = 60,
+    t0: float = 10e-6,
+) -> tuple[list[Acquisition], Acquisition]:
     """Small 2D frames for tests and quick runs (``fpcore.born``, single scattering): a point-cluster
     target moving through Born speckle, plus its calibration (target alone at r0 = (0, 0, 15 mm));
     truth travels with every frame. 400 samples at 20 MHz from t0 = 10 µs cover z ≈ 8–23 mm."""
@@ -271,15 +289,26 @@ def born_frames(n_frames: int, n_elements: int = 32, n_waves: int = 5, n_t: int 
     amps = rng.uniform(0.6, 1.0, 6)
     r0 = np.array([0.0, 0.0, 15e-3])
     cal = born_points(probe, seq, r0 + offs, amps, n_t=n_t, t0=t0)
-    cal.truth = {"targets": [{"name": "marker", "position_m": r0.tolist(), "diameter_m": 1.6e-3}],
-                 "r0_m": r0.tolist(), "diameter_m": 1.6e-3}
+    cal.truth = {
+        "targets": [{"name": "marker", "position_m": r0.tolist(), "diameter_m": 1.6e-3}],
+        "r0_m": r0.tolist(),
+        "diameter_m": 1.6e-3,
+    }
     sp = np.stack([rng.uniform(-6e-3, 6e-3, speckle), np.zeros(speckle), rng.uniform(10e-3, 22e-3, speckle)], 1)
     sp_amp = 0.3 * rng.standard_normal(speckle)
     frames = []
     for k in range(n_frames):
         t = np.array([-1e-3 + 0.2e-3 * k, 0.0, 14e-3 + 0.3e-3 * k])
-        acq = born_points(probe, seq, np.concatenate([t + offs, sp]), np.concatenate([amps, sp_amp]), n_t=n_t,
-                          t0=t0, frame_index=k, timestamp=0.1 * k)
+        acq = born_points(
+            probe,
+            seq,
+            np.concatenate([t + offs, sp]),
+            np.concatenate([amps, sp_amp]),
+            n_t=n_t,
+            t0=t0,
+            frame_index=k,
+            timestamp=0.1 * k,
+        )
         acq.truth = {"targets": [{"name": "marker", "position_m": t.tolist()}]}
         frames.append(acq)
     return frames, cal

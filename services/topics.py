@@ -122,7 +122,7 @@ class Keys:
     def dictionary_path(self, key: str) -> list[str]:
         """The chunks of a query key below ``fp/<rig>/dictionary`` (empty for the root or another key)."""
         root = self.dictionary_root
-        rest = key[len(root):].lstrip("/") if key.startswith(root) else ""
+        rest = key[len(root) :].lstrip("/") if key.startswith(root) else ""
         return rest.split("/") if rest else []
 
     # -- liveliness ------------------------------------------------------------------------------------

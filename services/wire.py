@@ -211,7 +211,7 @@ def _split(mv: memoryview) -> tuple[bytes, int]:
         )
     if hlen > MAX_HEADER_BYTES:
         raise WireError("header_length", f"{hlen} bytes exceeds the limit of {MAX_HEADER_BYTES}")
-    return bytes(mv[PREFIX_SIZE:PREFIX_SIZE + hlen]), _align(PREFIX_SIZE + hlen)
+    return bytes(mv[PREFIX_SIZE : PREFIX_SIZE + hlen]), _align(PREFIX_SIZE + hlen)
 
 
 def _reject_constant(token: str) -> Any:
@@ -292,9 +292,7 @@ def _views(mv: memoryview, data_start: int, arrays: list[ArrayDescriptor]) -> di
         end = d.offset + d.nbytes
     expected = data_start + end
     if n != expected:
-        raise WireError(
-            "payload", f"expected exactly {expected} bytes (data section starts at {data_start}), got {n}"
-        )
+        raise WireError("payload", f"expected exactly {expected} bytes (data section starts at {data_start}), got {n}")
     return views
 
 
@@ -373,7 +371,7 @@ def decode_header(data: bytes | bytearray | memoryview, *, strict: bool = True) 
     """
     try:
         mv = _bytes_view(data)
-        hdr = _split(mv)[0] if mv[:len(MAGIC)] == MAGIC else bytes(mv)
+        hdr = _split(mv)[0] if mv[: len(MAGIC)] == MAGIC else bytes(mv)
         if len(hdr) > MAX_HEADER_BYTES:
             raise WireError("header_length", f"{len(hdr)} bytes exceeds the limit of {MAX_HEADER_BYTES}")
         return _envelope(_parse_json(hdr), strict=strict)
@@ -391,7 +389,7 @@ def error_report(exc: WireError, key: str, payload: Any = None, node: str = "") 
         try:
             mv = _bytes_view(payload)
             try:
-                raw = _split(mv)[0] if mv[:len(MAGIC)] == MAGIC else bytes(mv[:MAX_HEADER_BYTES])
+                raw = _split(mv)[0] if mv[: len(MAGIC)] == MAGIC else bytes(mv[:MAX_HEADER_BYTES])
                 excerpt = raw[:1024].decode("utf-8", errors="replace")
                 frame_index = decode_header(raw, strict=False).frame_index
             except WireError:
@@ -401,6 +399,10 @@ def error_report(exc: WireError, key: str, payload: Any = None, node: str = "") 
     if frame_index is not None and frame_index < 0:
         frame_index = None
     return ErrorReport(
-        frame_index=frame_index, key=key, field=exc.field, problem=exc.problem[:2000],
-        header_excerpt=excerpt[:1024], node=node,
+        frame_index=frame_index,
+        key=key,
+        field=exc.field,
+        problem=exc.problem[:2000],
+        header_excerpt=excerpt[:1024],
+        node=node,
     )

@@ -27,9 +27,24 @@ def test_characterise_recovers_fibre_orientation(tmp_path) -> None:
     acq.truth = {"fibres": fibres}
     write_uff(tmp_path / "f.uff", acq)
     out = tmp_path / "c.json"
-    rc = main(["characterise", str(tmp_path / "f.uff"), "--angles=-30:30:3", "--lengths", "1mm:3mm:3",
-               "--x=-6mm:6mm", "--z", "11mm:19mm", "--json", str(out), "--npz", str(tmp_path / "c.npz"),
-               "--png", str(tmp_path / "c.png")])
+    rc = main(
+        [
+            "characterise",
+            str(tmp_path / "f.uff"),
+            "--angles=-30:30:3",
+            "--lengths",
+            "1mm:3mm:3",
+            "--x=-6mm:6mm",
+            "--z",
+            "11mm:19mm",
+            "--json",
+            str(out),
+            "--npz",
+            str(tmp_path / "c.npz"),
+            "--png",
+            str(tmp_path / "c.png"),
+        ]
+    )
     assert rc == 0
     doc = json.loads(out.read_text())
     assert doc["truth_fibres_compared"] == 2

@@ -20,8 +20,21 @@ def sim(tmp_path_factory):
 
 def test_track_writes_locate_layout_with_tracks(sim, tmp_path) -> None:
     out, png = tmp_path / "t.json", tmp_path / "t.png"
-    assert main(["track", str(sim / "frames.uff"), "--calibration", str(sim / "calibration_cylinder2.uff"),
-                 "--json", str(out), "--png", str(png)]) == 0
+    assert (
+        main(
+            [
+                "track",
+                str(sim / "frames.uff"),
+                "--calibration",
+                str(sim / "calibration_cylinder2.uff"),
+                "--json",
+                str(out),
+                "--png",
+                str(png),
+            ]
+        )
+        == 0
+    )
     doc = json.loads(out.read_text())
     assert doc["fingerprint"] == "cylinder2"  # named after the target the calibration records
     assert [f["frame_index"] for f in doc["frames"]] == [0, 1, 2, 3]
@@ -42,8 +55,14 @@ def test_track_writes_locate_layout_with_tracks(sim, tmp_path) -> None:
 
 
 def test_negative_values_are_joined_to_their_option() -> None:
-    assert join_negative_values(["locate", "d.uff", "--r0", "-1.5mm,11mm", "--x", "-4mm:4mm", "--targets", "2"]) == \
-        ["locate", "d.uff", "--r0=-1.5mm,11mm", "--x=-4mm:4mm", "--targets", "2"]
+    assert join_negative_values(["locate", "d.uff", "--r0", "-1.5mm,11mm", "--x", "-4mm:4mm", "--targets", "2"]) == [
+        "locate",
+        "d.uff",
+        "--r0=-1.5mm,11mm",
+        "--x=-4mm:4mm",
+        "--targets",
+        "2",
+    ]
     assert join_negative_values(["--velocity", "-.2,0.1", "-h"]) == ["--velocity=-.2,0.1", "-h"]
     assert join_negative_values(["--json", "-"]) == ["--json", "-"]  # not a number: left alone
 
@@ -54,8 +73,24 @@ def test_r0_far_from_the_recorded_position_is_refused_unless_forced(sim, tmp_pat
     err = capsys.readouterr().err
     assert "--r0" in err and "9.50 mm laterally" in err and "--force" in err and "Traceback" not in err
     out = tmp_path / "forced.json"
-    assert main(["locate", data, "--calibration", cal, "--r0", "-4.75mm,23.5mm", "--frames", "0", "--force",
-                 "--json", str(out)]) == 0
+    assert (
+        main(
+            [
+                "locate",
+                data,
+                "--calibration",
+                cal,
+                "--r0",
+                "-4.75mm,23.5mm",
+                "--frames",
+                "0",
+                "--force",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     assert "warning" in capsys.readouterr().out
     # Within one resolution cell of the recorded position: accepted silently.
     assert main(["locate", data, "--calibration", cal, "--r0", "4.8mm,23.5mm", "--frames", "0"]) == 0

@@ -12,9 +12,9 @@ from fpcore.geometry import cosines, from_xyz, mirror_direction, to_xyz
 def test_cosines_complete_unit_directions() -> None:
     s = np.array([[0.0, 0.0], [0.3, 0.0], [0.2, -0.4], [-0.6, 0.5]])
     c = cosines(s)
-    assert np.allclose(s[:, 0] ** 2 + s[:, 1] ** 2 + c ** 2, 1.0, rtol=0, atol=1e-15)
+    assert np.allclose(s[:, 0] ** 2 + s[:, 1] ** 2 + c**2, 1.0, rtol=0, atol=1e-15)
     assert np.all(c > 0) and c[0] == 1.0
-    assert c[1] == np.sqrt(1 - 0.3 ** 2)
+    assert c[1] == np.sqrt(1 - 0.3**2)
 
 
 def test_xyz_mapping_round_trips_in_2d_and_3d() -> None:

@@ -51,11 +51,18 @@ def compute_maps() -> dict[str, np.ndarray]:
     grid = fpcore.Grid.regular(X_RANGE, Z_RANGE, SPACING)
     imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
     pw = imager.plane_waves(acq)
-    fp = fpcore.from_calibration(cal, np.array(cal.truth["r0_m"]), pw.out_sines, sc.band,
-                                 diameter=cal.truth["diameter_m"], name=TARGET)
+    fp = fpcore.from_calibration(
+        cal, np.array(cal.truth["r0_m"]), pw.out_sines, sc.band, diameter=cal.truth["diameter_m"], name=TARGET
+    )
     truth = next(t for t in acq.truth["targets"] if t["name"] == TARGET)
-    return {"gamma": imager.gamma(pw, fp), "confocal": imager.confocal(pw), "x": grid.x, "z": grid.z,
-            "band_hz": np.asarray(sc.band, dtype=np.float64), "truth_m": np.asarray(truth["position_m"])}
+    return {
+        "gamma": imager.gamma(pw, fp),
+        "confocal": imager.confocal(pw),
+        "x": grid.x,
+        "z": grid.z,
+        "band_hz": np.asarray(sc.band, dtype=np.float64),
+        "truth_m": np.asarray(truth["position_m"]),
+    }
 
 
 @pytest.fixture(scope="module")
@@ -92,8 +99,10 @@ def test_map_matches_golden_within_half_a_db(reference: dict, current: dict, nam
     new_db = to_db(new, power)
     worst = np.unravel_index(int(np.argmax(np.abs(new_db - ref_db))), new_db.shape)
     diff = float(abs(new_db[worst] - ref_db[worst]))
-    assert diff <= TOLERANCE_DB, (f"{name}: {diff:.2f} dB off the golden map at node {worst} "
-                                  f"({ref_db[worst]:.2f} dB stored, {new_db[worst]:.2f} dB now)")
+    assert diff <= TOLERANCE_DB, (
+        f"{name}: {diff:.2f} dB off the golden map at node {worst} "
+        f"({ref_db[worst]:.2f} dB stored, {new_db[worst]:.2f} dB now)"
+    )
     peak = tuple(int(i) for i in np.unravel_index(int(np.argmax(new)), new.shape))
     assert peak == tuple(int(i) for i in reference[f"{name}_peak"]), f"{name}: peak moved"
     # The maps above are relative; the level of the peak itself (γ_max ≤ 1, the confocal scale) too.

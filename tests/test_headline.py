@@ -33,8 +33,16 @@ def test_spheres_hidden_on_confocal_found_by_gamma(setup, frame: int) -> None:
     for tg in acq.ground_truth.targets or []:
         r, radius = tg.position, 0.5 * tg.diameter
         gamma = imager.gamma(pw, fps[tg.name])
-        det = fpcore.detect(gamma, grid, lam, sc.probe.aperture[0], sc.band[1] - sc.band[0], sc.c0,
-                            name=tg.name, exclusion_radius=radius)[0]
+        det = fpcore.detect(
+            gamma,
+            grid,
+            lam,
+            sc.probe.aperture[0],
+            sc.band[1] - sc.band[0],
+            sc.c0,
+            name=tg.name,
+            exclusion_radius=radius,
+        )[0]
         assert np.linalg.norm(np.array(det.position_m) - r) < 1e-3
         assert det.c_gamma >= 5.0
         assert det.pfa < 1e-6

@@ -88,7 +88,7 @@ def test_applicable() -> None:
     assert PresumTransform.applicable(so3, si3)
     assert PresumTransform.applicable(so2[:, 0], si2[:, 0], ndim=2)  # 1D sines
     assert PresumTransform.applicable(np.linspace(-0.9, 0.9, 128), np.linspace(-0.2, 0.2, 3), ndim=2)
-    (ds, a_o, a_i), = lattice(so2, si2, 2)
+    ((ds, a_o, a_i),) = lattice(so2, si2, 2)
     assert ds == pytest.approx(DS, rel=1e-9) and a_o == pytest.approx(-9.5 * DS)
     rng = np.random.default_rng(4)
     assert not PresumTransform.applicable(rng.uniform(-0.5, 0.5, 20), si2[:, 0], ndim=2)

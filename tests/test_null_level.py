@@ -66,8 +66,7 @@ def _detect(sc, grid, imager, level, acq, fp, name, max_pfa=1e-3):
     lam = sc.c0 / sc.probe.centre_frequency
     ap, bw = sc.probe.aperture[0], sc.band[1] - sc.band[0]
     lev, vis = level.level(acq, pw, fp, resolution_cell(lam, ap, bw, sc.c0, 0.5 * (grid.z[0] + grid.z[-1])))
-    return detect(imager.gamma(pw, fp), grid, lam, ap, bw, sc.c0, name=name, level=lev, visible=vis,
-                  max_pfa=max_pfa)
+    return detect(imager.gamma(pw, fp), grid, lam, ap, bw, sc.c0, name=name, level=lev, visible=vis, max_pfa=max_pfa)
 
 
 def test_targets_found_on_the_default_grid_without_a_depth_window(cylinder_setup) -> None:
@@ -95,6 +94,7 @@ def test_targets_found_on_the_default_grid_without_a_depth_window(cylinder_setup
 def test_fog_only_frames_give_no_detection(cylinder_setup) -> None:
     sc, grid, imager, fps, level = cylinder_setup
     fog = sc.without_targets()
-    found = [bool(_detect(sc, grid, imager, level, fog.frame(i), fps["cylinder1"], "cylinder1"))
-             for i in range(0, 8, 2)]
+    found = [
+        bool(_detect(sc, grid, imager, level, fog.frame(i), fps["cylinder1"], "cylinder1")) for i in range(0, 8, 2)
+    ]
     assert not any(found)

@@ -23,11 +23,12 @@ def test_offline_modules_do_not_import_zenoh_and_nodes_do_not_import_the_cli() -
     pure = "services.pipeline, services.convert, services.registry, services.models, services.topics"
     code = f"import sys, {pure}; assert 'zenoh' not in sys.modules, 'zenoh imported'"
     subprocess.run([sys.executable, "-c", code], check=True)
-    nodes = ("services.nodes.processor, services.nodes.publisher, services.nodes.recorder, services.nodes.local, "
-             "services.viewing.rerun_log, services.viewing.server, services.viewing.sample, "
-             "services.viewing.frame_figure")
-    code = (f"import sys, {nodes}; cli = [m for m in sys.modules if m.startswith('services.cli')]; "
-            "assert not cli, cli")
+    nodes = (
+        "services.nodes.processor, services.nodes.publisher, services.nodes.recorder, services.nodes.local, "
+        "services.viewing.rerun_log, services.viewing.server, services.viewing.sample, "
+        "services.viewing.frame_figure"
+    )
+    code = f"import sys, {nodes}; cli = [m for m in sys.modules if m.startswith('services.cli')]; assert not cli, cli"
     subprocess.run([sys.executable, "-c", code], check=True)
 
 

@@ -29,8 +29,13 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def _start_recorder(args: list[str], log: Path) -> subprocess.Popen:
     with open(log, "w") as err:
-        proc = subprocess.Popen([sys.executable, "-m", "services.cli", "record", *args], cwd=ROOT,
-                                stdout=subprocess.PIPE, stderr=err, text=True)
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "services.cli", "record", *args],
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=err,
+            text=True,
+        )
     assert proc.stdout is not None
     deadline = time.monotonic() + 30
     while time.monotonic() < deadline and proc.poll() is None:
@@ -60,8 +65,10 @@ def test_kill9_recorder_then_recover_keeps_everything_flushed(tmp_path, capsys) 
     proc = None
     try:
         with open_session(BusConfig(listen=[f"tcp/127.0.0.1:{port}"], connect=[])) as s:
-            proc = _start_recorder(["--rig", rig, "-o", str(path), "--flush-interval", "0.5", "--connect",
-                                    f"tcp/127.0.0.1:{port}"], tmp_path / "rec.log")
+            proc = _start_recorder(
+                ["--rig", rig, "-o", str(path), "--flush-interval", "0.5", "--connect", f"tcp/127.0.0.1:{port}"],
+                tmp_path / "rec.log",
+            )
             assert wait_for_token(s, keys(rig).alive("recorder"), 20)
             k = keys(rig)
             block = zenoh.CongestionControl.BLOCK
@@ -104,8 +111,10 @@ def test_rotation_by_size_and_clean_close(tmp_path) -> None:
     rig, port = "rot", free_port()
     payloads = []
     base = examples()["RFFrame"]
-    with open_session(BusConfig(listen=[f"tcp/127.0.0.1:{port}"], connect=[])) as s_rec, \
-            open_session(BusConfig(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"])) as s:
+    with (
+        open_session(BusConfig(listen=[f"tcp/127.0.0.1:{port}"], connect=[])) as s_rec,
+        open_session(BusConfig(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"])) as s,
+    ):
         with Recorder(s_rec, tmp_path / "rot.mcap", rig=rig, flush_interval=0.1, max_bytes=12_000) as rec:
             assert wait_for_token(s, keys(rig).alive("recorder"), 20)
             pub = s.declare_publisher(keys(rig).rf, congestion_control=zenoh.CongestionControl.BLOCK)

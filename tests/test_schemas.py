@@ -28,8 +28,11 @@ def test_check_cli_exit_codes(tmp_path: Path) -> None:
     target.write_text(target.read_text().replace('"RFFrame"', '"RFFrameX"'))
     (tmp_path / "Status.json").unlink()
     (tmp_path / "Old.json").write_text('{"x-wire": "old"}')
-    assert schemas_gen.stale(tmp_path) == ["RFFrame.json: stale", "Status.json: missing",
-                                           "Old.json: not generated from a model"]
+    assert schemas_gen.stale(tmp_path) == [
+        "RFFrame.json: stale",
+        "Status.json: missing",
+        "Old.json: not generated from a model",
+    ]
     assert schemas_gen.main(["--check", "--dir", str(tmp_path)]) == 1
     schemas_gen.main(["--dir", str(tmp_path)])
     assert schemas_gen.stale(tmp_path) == []

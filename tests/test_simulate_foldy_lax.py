@@ -50,8 +50,9 @@ def test_scattering_mean_free_path_from_coherent_wave_decay() -> None:
     ls = 5.0
     density = 1.0 / (cross_section(t, k, 2) * ls)
     depths = np.linspace(1.0, 9.0, 12)
-    psi = coherent_wave(np.random.default_rng(7), k, t, density, width=60.0, thickness=10.0,
-                        depths=depths, dim=2, n_real=60)
+    psi = coherent_wave(
+        np.random.default_rng(7), k, t, density, width=60.0, thickness=10.0, depths=depths, dim=2, n_real=60
+    )
     slope = np.polyfit(depths, np.log(np.abs(psi)), 1)[0]
     ls_measured = -1.0 / (2 * slope)
     assert abs(ls_measured / ls - 1) < 0.2

@@ -41,8 +41,12 @@ def test_special_functions_match_scipy() -> None:
 
 def test_lossless_coefficients_conserve_energy() -> None:
     """S_n = 1 + 2A_n is unimodular for every lossless scatterer (sphere and cylinder)."""
-    for coef in (sphere_coefficients(KA, N, PAPER), cylinder_coefficients(KA, N, PAPER),
-                 fluid_sphere_coefficients(KA, N, 1.3, 1.2), fluid_cylinder_coefficients(KA, N, 0.9, 0.8)):
+    for coef in (
+        sphere_coefficients(KA, N, PAPER),
+        cylinder_coefficients(KA, N, PAPER),
+        fluid_sphere_coefficients(KA, N, 1.3, 1.2),
+        fluid_cylinder_coefficients(KA, N, 0.9, 0.8),
+    ):
         assert np.max(np.abs(np.abs(1 + 2 * coef) - 1)) < 1e-9
     lossy = sphere_coefficients(KA, N, Elastic(5700.0, 2700.0, 2000.0, 1e-3, 1e-3))
     assert np.all(np.abs(1 + 2 * lossy) <= 1 + 1e-12)
@@ -63,10 +67,12 @@ def test_low_frequency_limit_is_the_equivalent_fluid() -> None:
     m = PAPER
     c_sph = np.sqrt(m.c_p**2 - 4 * m.c_t**2 / 3)
     c_cyl = np.sqrt(m.c_p**2 - m.c_t**2)
-    np.testing.assert_allclose(sphere_coefficients(ka, n, m),
-                               fluid_sphere_coefficients(ka, n, m.density / 1000, c_sph / 1500), rtol=1e-5)
-    np.testing.assert_allclose(cylinder_coefficients(ka, n, m),
-                               fluid_cylinder_coefficients(ka, n, m.density / 1000, c_cyl / 1500), rtol=1e-5)
+    np.testing.assert_allclose(
+        sphere_coefficients(ka, n, m), fluid_sphere_coefficients(ka, n, m.density / 1000, c_sph / 1500), rtol=1e-5
+    )
+    np.testing.assert_allclose(
+        cylinder_coefficients(ka, n, m), fluid_cylinder_coefficients(ka, n, m.density / 1000, c_cyl / 1500), rtol=1e-5
+    )
 
 
 def test_series_sign_convention_matches_born_point() -> None:
@@ -82,8 +88,12 @@ def test_series_sign_convention_matches_born_point() -> None:
     h = sphere.transfer(probe.positions, sines, f, c0, r)
     k = 2 * np.pi * f / c0
     vol = 4 / 3 * np.pi * a**3
-    ref = np.stack([radiate_points(r[None, :], np.array([kk**2 * 0.01 * vol]), probe.positions, sines,
-                                   f[i:i + 1], c0, 3)[0] for i, kk in enumerate(k)])
+    ref = np.stack(
+        [
+            radiate_points(r[None, :], np.array([kk**2 * 0.01 * vol]), probe.positions, sines, f[i : i + 1], c0, 3)[0]
+            for i, kk in enumerate(k)
+        ]
+    )
     np.testing.assert_allclose(h, ref, rtol=1.5e-2)
 
 
@@ -109,5 +119,6 @@ def test_elastic_cylinder_transfer_runs_and_rings() -> None:
     h = cyl.transfer(probe.positions, np.array([[0.0, 0.0]]), f, 1500.0, np.array([0.0, 0.0, 15e-3]))
     assert h.shape == (64, 8, 1) and np.all(np.isfinite(h))
     rigid = ElasticCylinder(4e-3, Elastic(5700.0e8, 2700.0, 2000.0)).transfer(
-        probe.positions, np.array([[0.0, 0.0]]), f, 1500.0, np.array([0.0, 0.0, 15e-3]))
+        probe.positions, np.array([[0.0, 0.0]]), f, 1500.0, np.array([0.0, 0.0, 15e-3])
+    )
     assert np.linalg.norm(h - rigid) > 0.1 * np.linalg.norm(rigid)

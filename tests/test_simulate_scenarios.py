@@ -57,9 +57,12 @@ def test_calibration_is_the_target_alone_at_r0(sinking) -> None:
     u = np.argmin(np.linalg.norm(sc.probe.positions[:, :2] - r0[:2], axis=1))
     i = int(np.argmin(np.linalg.norm(sc.sequence.sines, axis=1)))
     front = r0 - np.array([0.0, 0.0, 5e-3])
-    t_exp = (front[0] * sc.sequence.sines[i, 0] + front[1] * sc.sequence.sines[i, 1]
-             + front[2] * np.sqrt(1 - np.sum(sc.sequence.sines[i] ** 2))
-             + np.linalg.norm(sc.probe.positions[u] - front)) / sc.c0
+    t_exp = (
+        front[0] * sc.sequence.sines[i, 0]
+        + front[1] * sc.sequence.sines[i, 1]
+        + front[2] * np.sqrt(1 - np.sum(sc.sequence.sines[i] ** 2))
+        + np.linalg.norm(sc.probe.positions[u] - front)
+    ) / sc.c0
     t_peak = cal.times[np.argmax(np.abs(cal.rf[u, i]))]
     assert abs(t_peak - t_exp) < 1e-6
     with pytest.raises(KeyError):
@@ -86,8 +89,7 @@ def _small_2d(envelope: str = "escape", displacement: float = 0.0):
     seq = PlaneWaveSequence.uniform_sines(9, 0.15)
     band = Band(1.8e6, 2.6e6)
     win = TimeWindow.covering(10.4e6, 12e-6, 32e-6, guard=20e-6)
-    layer = ScatteringLayer(z_surface=10e-3, ls=1.8e-3, la=8e-3, envelope=envelope,
-                            frame_displacement=displacement)
+    layer = ScatteringLayer(z_surface=10e-3, ls=1.8e-3, la=8e-3, envelope=envelope, frame_displacement=displacement)
     return c0, probe, seq, band, win, layer
 
 
@@ -113,8 +115,9 @@ def test_background_level_follows_its_envelope_and_ignores_the_target() -> None:
 
 def test_frame_to_frame_correlation_follows_dws() -> None:
     c0, probe, seq, band, win, layer = _small_2d(displacement=40e-6)
-    bg = DiffuseBackground(layer, probe.positions, seq.sines, win, band, c0, 2, 0.5 * probe.aperture[0],
-                           np.random.default_rng(1))
+    bg = DiffuseBackground(
+        layer, probe.positions, seq.sines, win, band, c0, 2, 0.5 * probe.aperture[0], np.random.default_rng(1)
+    )
     v0 = bg.next().copy()
     v1 = bg.next()
     measured = abs(np.vdot(v0, v1)) / (np.linalg.norm(v0) * np.linalg.norm(v1))
@@ -123,8 +126,16 @@ def test_frame_to_frame_correlation_follows_dws() -> None:
     assert abs(measured - expected) < 0.1
 
 
-def _apodised_confocal(h: np.ndarray, probe: Probe, seq: PlaneWaveSequence, freqs: np.ndarray, c0: float,
-                       spectrum: np.ndarray, xs: np.ndarray, z: float) -> np.ndarray:
+def _apodised_confocal(
+    h: np.ndarray,
+    probe: Probe,
+    seq: PlaneWaveSequence,
+    freqs: np.ndarray,
+    c0: float,
+    spectrum: np.ndarray,
+    xs: np.ndarray,
+    z: float,
+) -> np.ndarray:
     """A small plane-wave confocal image (docs/design.md §4.3) with a Hann-apodised receive aperture, |s_o| ≤ 0.5."""
     k = 2 * np.pi * freqs / c0
     u = probe.positions[:, 0]
@@ -136,8 +147,11 @@ def _apodised_confocal(h: np.ndarray, probe: Probe, seq: PlaneWaveSequence, freq
     ci, co = np.sqrt(1 - si**2), np.sqrt(1 - so**2)
     out = []
     for x in xs:
-        ph = np.exp(1j * k[:, None, None] * ((so[None, :, None] + si[None, None, :]) * x
-                                             + (co[None, :, None] + ci[None, None, :]) * z))
+        ph = np.exp(
+            1j
+            * k[:, None, None]
+            * ((so[None, :, None] + si[None, None, :]) * x + (co[None, :, None] + ci[None, None, :]) * z)
+        )
         out.append(abs(np.sum(r * ph)) ** 2)
     return np.array(out)
 
@@ -150,16 +164,22 @@ def test_confocal_contrast_falls_as_exp_minus_z_over_ls() -> None:
     spec = band.spectrum(f)
     depths = np.arange(1, 6) * layer.ls
     xs = np.linspace(-2e-3, 2e-3, 9)
-    backgrounds = [DiffuseBackground(layer, probe.positions, seq.sines, win, band, c0, 2,
-                                     0.5 * probe.aperture[0], np.random.default_rng(s)).next() for s in range(4)]
+    backgrounds = [
+        DiffuseBackground(
+            layer, probe.positions, seq.sines, win, band, c0, 2, 0.5 * probe.aperture[0], np.random.default_rng(s)
+        ).next()
+        for s in range(4)
+    ]
     contrast = []
     for d in depths:
         r = np.array([0.0, 0.0, layer.z_surface + d])
         h0 = radiate_points(r[None, :], np.array([1e-3]), probe.positions, seq.sines, f, c0, 2)
         h = layer.attenuate(h0, r, 0.0, probe.positions, seq.sines)
         # Target intensity relative to the same target in water: removes the free-space range loss.
-        i_t = (_apodised_confocal(h, probe, seq, f, c0, spec, np.array([0.0]), r[2])[0]
-               / _apodised_confocal(h0, probe, seq, f, c0, spec, np.array([0.0]), r[2])[0])
+        i_t = (
+            _apodised_confocal(h, probe, seq, f, c0, spec, np.array([0.0]), r[2])[0]
+            / _apodised_confocal(h0, probe, seq, f, c0, spec, np.array([0.0]), r[2])[0]
+        )
         i_m = np.mean([_apodised_confocal(v, probe, seq, f, c0, spec, xs, r[2]).mean() for v in backgrounds])
         contrast.append(i_t / i_m)
     slope = np.polyfit(depths, np.log(contrast), 1)[0]
@@ -199,8 +219,7 @@ def test_sinking_cylinder_is_the_2d_analogue() -> None:
 
 
 def test_registry_and_full_sizes() -> None:
-    assert set(SCENARIOS) == {"sinking-sphere", "sinking-cylinder", "fast-cylinder", "lesion-marker",
-                              "muscle-fibres"}
+    assert set(SCENARIOS) == {"sinking-sphere", "sinking-cylinder", "fast-cylinder", "lesion-marker", "muscle-fibres"}
     with pytest.raises(KeyError):
         scenario("nope")
     full = scenario("sinking-sphere")

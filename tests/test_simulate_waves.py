@@ -33,8 +33,7 @@ def test_synthesis_is_the_inverse_of_acquisition_spectrum() -> None:
     acq = Acquisition(rf, win.fs, win.t0, 1500.0, probe, seq)
     spec = acq.spectrum(win.freqs()[bins[0]] - 1.0, win.freqs()[bins[-1]] + 1.0, pad=1)
     np.testing.assert_allclose(spec.data, x, rtol=2e-4, atol=2e-4 * np.abs(x).max())
-    np.testing.assert_allclose(win.analyse(rf, bins), x, rtol=2e-4,
-                               atol=2e-4 * np.abs(x).max())
+    np.testing.assert_allclose(win.analyse(rf, bins), x, rtol=2e-4, atol=2e-4 * np.abs(x).max())
 
 
 def test_radiate_points_matches_direct_sum() -> None:
@@ -71,8 +70,9 @@ def test_echo_arrives_at_the_time_of_flight() -> None:
     h = radiate_points(r[None, :], np.array([1.0]), probe.positions, seq.sines, win.freqs()[bins], 1500.0, 3)
     rf = win.synthesize(h * band.spectrum(win.freqs()[bins])[:, None, None].astype(np.float32), bins)
     s = seq.sines[0]
-    expected = (r[0] * s[0] + r[1] * s[1] + r[2] * np.sqrt(1 - s @ s)) / 1500.0 \
-        + np.linalg.norm(probe.positions - r, axis=1) / 1500.0
+    expected = (r[0] * s[0] + r[1] * s[1] + r[2] * np.sqrt(1 - s @ s)) / 1500.0 + np.linalg.norm(
+        probe.positions - r, axis=1
+    ) / 1500.0
     measured = win.times()[np.argmax(np.abs(rf[:, 0, :]), axis=1)]
     assert np.max(np.abs(measured - expected)) < 1.0 / win.fs
 

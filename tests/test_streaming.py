@@ -44,8 +44,9 @@ class Node:
     def __init__(self, args: list[str], log: Path) -> None:
         self.name, self.log = args[0], log
         with open(log, "w") as err:
-            self.proc = subprocess.Popen([sys.executable, "-m", "services.cli", *args], cwd=ROOT,
-                                         stdout=subprocess.PIPE, stderr=err, text=True)
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "services.cli", *args], cwd=ROOT, stdout=subprocess.PIPE, stderr=err, text=True
+            )
 
     @property
     def pid(self) -> int:
@@ -123,17 +124,33 @@ def data(tmp_path_factory) -> dict[str, Any]:
 
 
 def _processor_args(rig: str, port: int, cal: Path, *extra: str) -> list[str]:
-    return ["process", "--rig", rig, "--calibration", str(cal), *GRID, "--n-freq", "24", "--queue", "fifo",
-            "--listen", f"tcp/127.0.0.1:{port}", *extra]
+    return [
+        "process",
+        "--rig",
+        rig,
+        "--calibration",
+        str(cal),
+        *GRID,
+        "--n-freq",
+        "24",
+        "--queue",
+        "fifo",
+        "--listen",
+        f"tcp/127.0.0.1:{port}",
+        *extra,
+    ]
 
 
 def _same_detections(a: Any, b: Any) -> bool:
     """Equal up to the NUFFT's multithreaded summation order (≈ 1e-7 relative)."""
     return len(a.detections) == len(b.detections) and all(
-        x.fingerprint == y.fingerprint and np.allclose(x.position_m, y.position_m, rtol=0, atol=1e-8)
-        and np.isclose(x.gamma_max, y.gamma_max, rtol=1e-4) and np.isclose(x.pfa, y.pfa, rtol=1e-2, atol=1e-30)
+        x.fingerprint == y.fingerprint
+        and np.allclose(x.position_m, y.position_m, rtol=0, atol=1e-8)
+        and np.isclose(x.gamma_max, y.gamma_max, rtol=1e-4)
+        and np.isclose(x.pfa, y.pfa, rtol=1e-2, atol=1e-30)
         and np.isclose(x.contrast_c_gamma, y.contrast_c_gamma, rtol=1e-4)
-        for x, y in zip(a.detections, b.detections, strict=True))
+        for x, y in zip(a.detections, b.detections, strict=True)
+    )
 
 
 # ------------------------------------------------------------------------------------------------- tests
@@ -149,14 +166,19 @@ def test_end_to_end_record_and_replay(data, tmp_path) -> None:
     try:  # the fresh processor of the replay starts now too: start-ups overlap
         procs.append(Node(_processor_args(rig, port2, data["cal_path"]), tmp_path / "proc2.log"))
         procs.append(Node(_processor_args(rig, port, data["cal_path"]), tmp_path / "proc.log"))
-        procs.append(Node(["record", "--rig", rig, "-o", str(mcap_path), "--connect",
-                                 f"tcp/127.0.0.1:{port}"], tmp_path / "rec.log"))
+        procs.append(
+            Node(
+                ["record", "--rig", rig, "-o", str(mcap_path), "--connect", f"tcp/127.0.0.1:{port}"],
+                tmp_path / "rec.log",
+            )
+        )
         for p in procs:
             p.wait_ready()
         with open_session(client(port)) as s:
             col = Collector(s, rig)
-            pub = Publisher(s, rig, AcquisitionSource(frames), pace="ack", wait_for=("processor", "recorder"),
-                            wait_timeout=30)
+            pub = Publisher(
+                s, rig, AcquisitionSource(frames), pace="ack", wait_for=("processor", "recorder"), wait_timeout=30
+            )
             summary = pub.run()
             k = keys(rig)
             dets = col.wait(k.detections, n)
@@ -207,6 +229,7 @@ def test_end_to_end_record_and_replay(data, tmp_path) -> None:
 
 def _bad_payloads(frame: RFFrame) -> dict[str, tuple[bytes, bytes]]:
     """name → (payload, attachment) of the five kinds of bad input (docs/design.md §7)."""
+
     def build(**changes: Any) -> RFFrame:
         return RFFrame.model_construct(**{**dict(frame), **changes})
 
@@ -232,15 +255,22 @@ def test_malformed_frames_are_reported_and_recorded(data, tmp_path) -> None:
     rig, port = "bad", free_port()
     frames = data["frames"]
     mcap_path = tmp_path / "bad.mcap"
-    good = [RFFrame.from_acquisition(frames[0]), RFFrame.from_acquisition(frames[1]).model_copy(
-        update={"frame_index": 6})]
+    good = [
+        RFFrame.from_acquisition(frames[0]),
+        RFFrame.from_acquisition(frames[1]).model_copy(update={"frame_index": 6}),
+    ]
     bad = _bad_payloads(RFFrame.from_acquisition(frames[2]))
     procs = []
     try:
-        procs.append(Node(_processor_args(rig, port, data["cal_path"], "--max-frame-bytes", "600000"),
-                                tmp_path / "proc.log"))
-        procs.append(Node(["record", "--rig", rig, "-o", str(mcap_path), "--connect",
-                                 f"tcp/127.0.0.1:{port}"], tmp_path / "rec.log"))
+        procs.append(
+            Node(_processor_args(rig, port, data["cal_path"], "--max-frame-bytes", "600000"), tmp_path / "proc.log")
+        )
+        procs.append(
+            Node(
+                ["record", "--rig", rig, "-o", str(mcap_path), "--connect", f"tcp/127.0.0.1:{port}"],
+                tmp_path / "rec.log",
+            )
+        )
         for p in procs:
             p.wait_ready()
         k = keys(rig)
@@ -297,10 +327,13 @@ def test_live_mode_keeps_the_newest_frame_and_counts_drops(data) -> None:
         done.append(result["frame_index"])
         time.sleep(0.3)
 
-    with open_session(BusConfig(listen=[f"tcp/127.0.0.1:{port}"], connect=[])) as s_proc, \
-            open_session(client(port)) as s_pub:
-        with Processor(s_proc, cfg, [FingerprintSpec("pt", model="point", r0=(0.0, 0.0, 15e-3))],
-                       on_result=slow) as node:
+    with (
+        open_session(BusConfig(listen=[f"tcp/127.0.0.1:{port}"], connect=[])) as s_proc,
+        open_session(client(port)) as s_pub,
+    ):
+        with Processor(
+            s_proc, cfg, [FingerprintSpec("pt", model="point", r0=(0.0, 0.0, 15e-3))], on_result=slow
+        ) as node:
             src = AcquisitionSource(frames, repeat=2)
             summary = Publisher(s_pub, rig, src, pace="none", wait_timeout=20).run()
             deadline = time.monotonic() + 30
@@ -317,8 +350,10 @@ def test_live_mode_keeps_the_newest_frame_and_counts_drops(data) -> None:
 def test_dictionary_queryable(data) -> None:
     rig, port = "dict", free_port()
     cfg = ProcessorConfig(rig=rig, queue="fifo", **SMALL)
-    with open_session(BusConfig(listen=[f"tcp/127.0.0.1:{port}"], connect=[])) as s_proc, \
-            open_session(client(port)) as s:
+    with (
+        open_session(BusConfig(listen=[f"tcp/127.0.0.1:{port}"], connect=[])) as s_proc,
+        open_session(client(port)) as s,
+    ):
         with Processor(s_proc, cfg, [FingerprintSpec("marker", calibration=data["cal"])]) as node:
             assert wait_for_token(s, keys(rig).alive("processor"), 20)
             listing = dictionary_request(s, rig, "list")
@@ -357,8 +392,10 @@ def test_ingest_validates_and_forwards(data) -> None:
     rf[0, 0, 0] = np.inf
     bad = encode(RFFrame.model_construct(**{**dict(frame), "rf": rf, "frame_index": 9}))
     stop = threading.Event()
-    with open_session(BusConfig(listen=[f"tcp/127.0.0.1:{port}"], connect=[])) as s_pub, \
-            open_session(client(port)) as s:
+    with (
+        open_session(BusConfig(listen=[f"tcp/127.0.0.1:{port}"], connect=[])) as s_pub,
+        open_session(client(port)) as s,
+    ):
         src = IngestSource(rig)
         pub = Publisher(s_pub, rig, src, pace="none", wait_for=())
         result: dict[str, Any] = {}
@@ -402,8 +439,13 @@ def test_cli_registers_streaming_commands() -> None:
     from services.cli import build_parser
 
     ap = build_parser()
-    for argv in (["publish", "--ingest"], ["process"], ["record"], ["recover", "x.mcap"], ["locate", "d.uff",
-                                                                                          "--model", "point"]):
+    for argv in (
+        ["publish", "--ingest"],
+        ["process"],
+        ["record"],
+        ["recover", "x.mcap"],
+        ["locate", "d.uff", "--model", "point"],
+    ):
         assert callable(ap.parse_args(argv).func), argv
 
 
@@ -426,8 +468,10 @@ def test_bus_config_flags_and_json5_file(tmp_path) -> None:
     assert get(cfg, "transport/shared_memory/transport_optimization/pool_size") == 64 << 20
     assert get(cfg, "connect/endpoints") == []
     f = tmp_path / "z.json5"
-    f.write_text('{ mode: "client", connect: { endpoints: ["tcp/127.0.0.1:9999"] },\n'
-                 '  scouting: { multicast: { enabled: true } } }  // a comment')
+    f.write_text(
+        '{ mode: "client", connect: { endpoints: ["tcp/127.0.0.1:9999"] },\n'
+        "  scouting: { multicast: { enabled: true } } }  // a comment"
+    )
     cfg = zenoh_config(bus_from_args(ap.parse_args(["--zenoh-config", str(f)])))
     assert get(cfg, "mode") == "client" and get(cfg, "connect/endpoints") == ["tcp/127.0.0.1:9999"]
     assert get(cfg, "scouting/multicast/enabled") is True and get(cfg, "connect/timeout_ms") == 2000

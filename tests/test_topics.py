@@ -24,8 +24,12 @@ def test_acks_dictionary_and_tokens() -> None:
     k = keys("r")
     assert k.acks == ("fp/r/detections", "fp/r/errors")
     assert [k.dictionary_op(op, "a/b") for op in ("list", "get", "add", "remove", "set")] == [
-        "fp/r/dictionary/list", "fp/r/dictionary/a/b", "fp/r/dictionary/add/a/b", "fp/r/dictionary/remove/a/b",
-        "fp/r/dictionary/set"]
+        "fp/r/dictionary/list",
+        "fp/r/dictionary/a/b",
+        "fp/r/dictionary/add/a/b",
+        "fp/r/dictionary/remove/a/b",
+        "fp/r/dictionary/set",
+    ]
     for op in ("add", "remove", "get"):
         with pytest.raises(ValueError):
             k.dictionary_op(op)

@@ -23,7 +23,7 @@ def _blob(grid: Grid, centre: np.ndarray, amp: float, width: float) -> np.ndarra
     mesh = np.meshgrid(*grid.axes, indexing="ij")
     c = (centre[0], centre[2]) if grid.ndim == 2 else centre
     d2 = sum((m - ci) ** 2 for m, ci in zip(mesh, c, strict=True))
-    return amp * np.exp(-d2 / (2 * width ** 2))
+    return amp * np.exp(-d2 / (2 * width**2))
 
 
 def _run(n_frames: int = 30, spike_every: int = 4):
@@ -123,8 +123,9 @@ def test_integrating_frames_suppresses_decorrelating_fog_spikes() -> None:
 
     def errors(k_frames: int) -> np.ndarray:
         rng = np.random.default_rng(3)
-        tracker = Tracker(grid, LAM, 20e-3, 0.8e6, 1500.0,
-                          TrackerConfig(max_tracks_per_map=1, integrate_frames=k_frames))
+        tracker = Tracker(
+            grid, LAM, 20e-3, 0.8e6, 1500.0, TrackerConfig(max_tracks_per_map=1, integrate_frames=k_frames)
+        )
         errs = []
         for k in range(30):
             # A target significant at the default birth threshold (calibrated PFA < 1e-3 on this map).
@@ -137,7 +138,7 @@ def test_integrating_frames_suppresses_decorrelating_fog_spikes() -> None:
         return np.array(errs)
 
     single, integrated = errors(1), errors(4)
-    assert np.sqrt(np.mean(integrated ** 2)) < 0.5 * np.sqrt(np.mean(single ** 2))
+    assert np.sqrt(np.mean(integrated**2)) < 0.5 * np.sqrt(np.mean(single**2))
     assert integrated.max() < 0.4e-3
 
 
@@ -166,8 +167,9 @@ def test_tracks_the_simulated_sinking_cylinder() -> None:
     ids: dict[str, set[int]] = {n: set() for n in fps}
     for acq in sc.frames():
         pw = imager.plane_waves(acq)
-        states = {s.fingerprint: s for s in tracker.update({n: imager.gamma(pw, f) for n, f in fps.items()},
-                                                           acq.timestamp)}
+        states = {
+            s.fingerprint: s for s in tracker.update({n: imager.gamma(pw, f) for n, f in fps.items()}, acq.timestamp)
+        }
         for tg in acq.ground_truth.targets or []:
             s = states[tg.name]
             errs[tg.name].append(float(np.linalg.norm(np.array(s.position_m) - tg.position)))
@@ -177,7 +179,7 @@ def test_tracks_the_simulated_sinking_cylinder() -> None:
     for name in fps:
         e = np.array(errs[name])
         assert e.max() < 1e-3, f"{name}: {e.max() * 1e3:.2f} mm"
-        assert np.sqrt(np.mean(e ** 2)) <= 1.5 * np.mean(crs[name]), name
+        assert np.sqrt(np.mean(e**2)) <= 1.5 * np.mean(crs[name]), name
         assert len(ids[name]) == 1
 
 

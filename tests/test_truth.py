@@ -22,10 +22,10 @@ def test_scenario_truths_keep_their_layout_and_round_trip(name: str) -> None:
     sc = scenario(name, quick=True, seed=0)
     for i in (0, sc.n_frames - 1):
         d = sc.truth(i)
-        assert list(d)[:len(FRAME_KEYS)] == FRAME_KEYS
+        assert list(d)[: len(FRAME_KEYS)] == FRAME_KEYS
         for t in d["targets"]:
             keys = TARGET_KEYS + (["velocity_m_s"] if t["moving"] else [])
-            assert list(t)[:len(keys)] == keys
+            assert list(t)[: len(keys)] == keys
         back = Truth.from_dict(json.loads(json.dumps(d))).to_dict()
         assert json.dumps(back) == json.dumps(d)  # same keys, values and order: same JSON text
         t = sc.ground_truth(i)
@@ -58,8 +58,15 @@ def test_typed_fields_of_a_simulated_frame() -> None:
 
 
 def test_unknown_keys_and_odd_values_round_trip_verbatim() -> None:
-    d = {"targets": [{"position_m": [0.0, 0.0, 0.02], "d": 0.01}], "note": "θ", "seed": True,
-         "band_hz": [1, "x"], "medium": [1, 2], "fibres": [{"alpha_rad": "steep"}], "frame_index": 3}
+    d = {
+        "targets": [{"position_m": [0.0, 0.0, 0.02], "d": 0.01}],
+        "note": "θ",
+        "seed": True,
+        "band_hz": [1, "x"],
+        "medium": [1, 2],
+        "fibres": [{"alpha_rad": "steep"}],
+        "frame_index": 3,
+    }
     t = Truth.from_dict(d)
     assert t.to_dict() == d
     assert t.seed is None and t.extra["seed"] is True  # a bool is not an int seed
@@ -77,8 +84,11 @@ def test_unknown_keys_and_odd_values_round_trip_verbatim() -> None:
 def test_acquisition_views_and_uff_carry_the_truth(tmp_path: Path) -> None:
     probe, seq = Probe.linear(8, 3e-4, 2.5e6, 1.5e6), PlaneWaveSequence.from_angles([-5.0, 0.0, 5.0])
     rf = np.zeros((8, 3, 32), np.float32)
-    truth = Truth(scenario="bench", band_hz=(1.9e6, 2.7e6),
-                  targets=[TargetTruth(name="a", position_m=(0.0, 0.0, 0.02), diameter_m=1e-3, moving=False)])
+    truth = Truth(
+        scenario="bench",
+        band_hz=(1.9e6, 2.7e6),
+        targets=[TargetTruth(name="a", position_m=(0.0, 0.0, 0.02), diameter_m=1e-3, moving=False)],
+    )
     acq = Acquisition(rf, 20e6, 0.0, 1500.0, probe, seq, truth=truth.to_dict())
     assert acq.ground_truth == truth
     assert acq.default_band() == (1.9e6, 2.7e6)

@@ -24,13 +24,20 @@ from fpcore.io import (
 FS, T0, C0 = 20e6, 2.5e-6, 1480.0
 
 
-def _frames(probe: Probe, seq: PlaneWaveSequence, n_frames: int = 3, n_t: int = 40,
-            seed: int = 0) -> list[Acquisition]:
+def _frames(probe: Probe, seq: PlaneWaveSequence, n_frames: int = 3, n_t: int = 40, seed: int = 0) -> list[Acquisition]:
     rng = np.random.default_rng(seed)
     return [
-        Acquisition(rng.standard_normal((probe.n_elements, seq.n_waves, n_t)).astype(np.float32),
-                    FS, T0, C0, probe, seq, frame_index=10 + i, timestamp=0.05 * i,
-                    truth={"position": [0.0, 0.001 * i, 0.02], "diameter": 0.01})
+        Acquisition(
+            rng.standard_normal((probe.n_elements, seq.n_waves, n_t)).astype(np.float32),
+            FS,
+            T0,
+            C0,
+            probe,
+            seq,
+            frame_index=10 + i,
+            timestamp=0.05 * i,
+            truth={"position": [0.0, 0.001 * i, 0.02], "diameter": 0.01},
+        )
         for i in range(n_frames)
     ]
 
@@ -40,18 +47,19 @@ def _linear() -> tuple[Probe, PlaneWaveSequence]:
 
 
 def _matrix() -> tuple[Probe, PlaneWaveSequence]:
-    return (Probe.matrix(4, 3, 5e-4, 2.2e6, 0.8e6),
-            PlaneWaveSequence.from_angles([-8.0, 0.0, 8.0], [-5.0, 5.0]))
+    return (Probe.matrix(4, 3, 5e-4, 2.2e6, 0.8e6), PlaneWaveSequence.from_angles([-8.0, 0.0, 8.0], [-5.0, 5.0]))
 
 
 def _assert_same(a: Acquisition, b: Acquisition) -> None:
     assert a.rf.dtype == b.rf.dtype
     np.testing.assert_array_equal(a.rf, b.rf)
-    assert (a.fs, a.t0, a.c0, a.frame_index, a.timestamp) == (b.fs, b.t0, b.c0, b.frame_index,
-                                                              b.timestamp)
+    assert (a.fs, a.t0, a.c0, a.frame_index, a.timestamp) == (b.fs, b.t0, b.c0, b.frame_index, b.timestamp)
     np.testing.assert_array_equal(a.probe.positions, b.probe.positions)
     assert (a.probe.pitch, a.probe.centre_frequency, a.probe.bandwidth) == (
-        b.probe.pitch, b.probe.centre_frequency, b.probe.bandwidth)
+        b.probe.pitch,
+        b.probe.centre_frequency,
+        b.probe.bandwidth,
+    )
     np.testing.assert_array_equal(a.sequence.sines, b.sequence.sines)
     assert a.sequence.prf == b.sequence.prf
     assert a.truth == b.truth
@@ -87,8 +95,7 @@ def test_round_trip_identical(tmp_path: Path, setup) -> None:
         assert cd.attrs["class"].decode() == "uff.channel_data"
         # MATLAB [time x channel x wave x frame] seen reversed by h5py
         assert cd["data"].shape == (3, seq.n_waves, probe.n_elements, 40)
-        assert cd["probe"].attrs["class"].decode() == (
-            "uff.linear_array" if probe.is_linear else "uff.probe")
+        assert cd["probe"].attrs["class"].decode() == ("uff.linear_array" if probe.is_linear else "uff.probe")
         assert cd["probe/geometry"].shape == (7, probe.n_elements)
         assert np.isinf(cd["sequence/sequence_0001/source/distance"][()]).all()
     # selected frames, and the frame-level truth override
@@ -192,7 +199,7 @@ def test_reads_matlab_layout_with_per_wave_delays(tmp_path: Path) -> None:
     assert acq.t0 == pytest.approx(1e-6)
     assert acq.rf.shape == (n_el, 3, n_t + 5)
     for i, d in enumerate(delay_samples):
-        np.testing.assert_array_equal(acq.rf[:, i, d:d + n_t], data[:, :, i].T)
+        np.testing.assert_array_equal(acq.rf[:, i, d : d + n_t], data[:, :, i].T)
         assert not acq.rf[:, i, :d].any()
     np.testing.assert_allclose(acq.sequence.sines[:, 0], np.sin(np.float32(angles)), rtol=1e-6)
     np.testing.assert_allclose(acq.probe.positions[:, 0], x, rtol=1e-6)
@@ -218,14 +225,26 @@ def test_reads_pyuff_ustb_file(tmp_path: Path) -> None:
     probe = pyuff.MatrixArray(N_x=nx, N_y=ny, pitch_x=pitch, pitch_y=pitch, geometry=geometry)
     az = np.deg2rad([-6.0, 0.0, 9.0])
     el = np.deg2rad([3.0, 0.0, -4.0])
-    seq = [pyuff.Wave(wavefront=pyuff.Wavefront.plane,
-                      source=pyuff.Point(distance=np.inf, azimuth=a, elevation=e),
-                      delay=0.0, sound_speed=1500.0) for a, e in zip(az, el, strict=True)]
+    seq = [
+        pyuff.Wave(
+            wavefront=pyuff.Wavefront.plane,
+            source=pyuff.Point(distance=np.inf, azimuth=a, elevation=e),
+            delay=0.0,
+            sound_speed=1500.0,
+        )
+        for a, e in zip(az, el, strict=True)
+    ]
     data = np.random.default_rng(5).standard_normal((n_t, nx * ny, 3, n_f)).astype(np.float32)
-    cd = pyuff.ChannelData(sampling_frequency=25e6, initial_time=-1e-6, sound_speed=1500.0,
-                           modulation_frequency=0.0, sequence=seq, probe=probe, data=data,
-                           pulse=pyuff.Pulse(center_frequency=3e6, fractional_bandwidth=0.5,
-                                             phase=0.0))
+    cd = pyuff.ChannelData(
+        sampling_frequency=25e6,
+        initial_time=-1e-6,
+        sound_speed=1500.0,
+        modulation_frequency=0.0,
+        sequence=seq,
+        probe=probe,
+        data=data,
+        pulse=pyuff.Pulse(center_frequency=3e6, fractional_bandwidth=0.5, phase=0.0),
+    )
     path = tmp_path / "pyuff.uff"
     cd.write(str(path), "channel_data", ignore_missing_compulsory_fields=True)
     frames = read_uff(path)
@@ -250,8 +269,7 @@ def test_pyuff_ustb_reads_our_file(tmp_path: Path, setup) -> None:
     write_uff(path, frames)
     cd = pyuff.Uff(str(path))["channel_data"]
     np.testing.assert_array_equal(cd.data, np.stack([fr.rf for fr in frames], -1).transpose(2, 0, 1, 3))
-    assert (cd.sampling_frequency, cd.initial_time, cd.sound_speed, cd.modulation_frequency) == (
-        FS, T0, C0, 0.0)
+    assert (cd.sampling_frequency, cd.initial_time, cd.sound_speed, cd.modulation_frequency) == (FS, T0, C0, 0.0)
     np.testing.assert_array_equal(cd.probe.xyz, probe.positions)
     az = np.array([w.source.azimuth for w in cd.sequence], dtype=float)
     el = np.array([w.source.elevation for w in cd.sequence], dtype=float)
@@ -295,6 +313,7 @@ def test_wrong_axis_order(good_file: Path) -> None:
         data = cd["data"][()]
         del cd["data"]
         cd.create_dataset("data", data=data.T)  # row-major [time, channel, wave, frame]
+
     _edit(good_file, transpose)
     with pytest.raises(UFFError, match=r"data: expected h5py shape .*16 elements.*row-major"):
         read_uff(good_file)
@@ -303,6 +322,7 @@ def test_wrong_axis_order(good_file: Path) -> None:
 def test_nan_in_data(good_file: Path) -> None:
     def poison(cd: h5py.Group) -> None:
         cd["data"][1, 0, 3, 7] = np.nan
+
     _edit(good_file, poison)
     with pytest.raises(UFFError, match="data: expected finite"):
         read_uff(good_file)
@@ -315,6 +335,7 @@ def test_diverging_wave_refused(good_file: Path) -> None:
         w["wavefront"][...] = 1  # spherical
         w["source/distance"][...] = 0.01
         w["source/azimuth"][...] = np.pi  # behind the array
+
     _edit(good_file, diverge)
     with pytest.raises(UFFError, match=r"sequence\[1\]/source/distance: expected Inf.*diverging"):
         read_uff(good_file)

@@ -44,8 +44,7 @@ def test_view_writes_rrd_with_one_row_per_frame(tmp_path: Path) -> None:
     assert rrd.stat().st_size > 0
     frames = _gamma_frames()
     if RERUN_CLI.exists():
-        res = subprocess.run([str(RERUN_CLI), "rrd", "verify", str(rrd)], capture_output=True, text=True,
-                             timeout=60)
+        res = subprocess.run([str(RERUN_CLI), "rrd", "verify", str(rrd)], capture_output=True, text=True, timeout=60)
         assert res.returncode == 0, res.stderr
 
     from rerun.chunk import RrdReader
@@ -85,8 +84,9 @@ def test_figure_draws_every_fingerprint_with_its_recorded_diameter(tmp_path: Pat
     import matplotlib.image
 
     frame = _gamma_frames()[2]
-    states = {m.fingerprint: m.state for _, m in iter_messages(SAMPLE)
-              if isinstance(m, GammaMap) and m.frame_index == frame}
+    states = {
+        m.fingerprint: m.state for _, m in iter_messages(SAMPLE) if isinstance(m, GammaMap) and m.frame_index == frame
+    }
     out = to_figure(SAMPLE, frame, tmp_path / "all.png")
     assert out["fingerprints"] == list(states)
     assert out["diameters_m"] == {k: v["diameter_m"] for k, v in states.items()}
@@ -130,9 +130,19 @@ def test_live_view_logs_the_bus_to_rrd(tmp_path: Path, serve: bool) -> None:
     viewer = serve_loopback(port=web, grpc_port=grpc) if serve else None
     try:
         with open_session(BusConfig(listen=[hub], connect=[], shm="off")) as session:
-            thread = threading.Thread(target=lambda: out.update(live_to_rrd(
-                BusConfig(listen=[EPHEMERAL], connect=[hub], shm="off"), "demo", rrd, stop=stop, duration=60,
-                stats=live, grpc_url=viewer.grpc_url if viewer else None)))
+            thread = threading.Thread(
+                target=lambda: out.update(
+                    live_to_rrd(
+                        BusConfig(listen=[EPHEMERAL], connect=[hub], shm="off"),
+                        "demo",
+                        rrd,
+                        stop=stop,
+                        duration=60,
+                        stats=live,
+                        grpc_url=viewer.grpc_url if viewer else None,
+                    )
+                )
+            )
             thread.start()
             try:
                 assert wait_for_token(session, keys("demo").alive("viewer"), 20.0)
@@ -142,7 +152,8 @@ def test_live_view_logs_the_bus_to_rrd(tmp_path: Path, serve: bool) -> None:
                 for _schema, channel, msg in iter_raw(SAMPLE):
                     if channel.topic not in pubs:
                         pubs[channel.topic] = session.declare_publisher(
-                            channel.topic, congestion_control=zenoh.CongestionControl.BLOCK)
+                            channel.topic, congestion_control=zenoh.CongestionControl.BLOCK
+                        )
                         assert wait_for_matching(pubs[channel.topic], 20.0), channel.topic
                     pubs[channel.topic].put(bytes(msg.data))
                     n += 1
@@ -167,6 +178,7 @@ def test_live_view_logs_the_bus_to_rrd(tmp_path: Path, serve: bool) -> None:
 
 
 # --- `fp view --serve`: the Rerun web viewer on 127.0.0.1 only -----------------------------------------------
+
 
 def _rrd_entities(rrd: Path) -> set[str]:
     from rerun.chunk import RrdReader
@@ -251,10 +263,27 @@ def test_view_serve_binds_loopback_only(tmp_path: Path) -> None:
     if not Path("/proc/net/tcp").exists():
         pytest.skip("needs Linux /proc to check the listening sockets")
     web, grpc = _two_ports()
-    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "view", str(SAMPLE), "--rrd",
-                             str(tmp_path / "s.rrd"), "--serve", "--port", str(web), "--grpc-port", str(grpc)],
-                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            start_new_session=True)  # its own process group: the rerun child is in it too
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "view",
+            str(SAMPLE),
+            "--rrd",
+            str(tmp_path / "s.rrd"),
+            "--serve",
+            "--port",
+            str(web),
+            "--grpc-port",
+            str(grpc),
+        ],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+    )  # its own process group: the rerun child is in it too
     lines: queue.Queue[str] = queue.Queue()
     threading.Thread(target=lambda: [lines.put(line) for line in proc.stdout], daemon=True).start()
     rerun_pids: list[int] = []

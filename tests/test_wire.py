@@ -54,22 +54,38 @@ def make_rf(n_u: int = 8, n_theta: int = 5, n_t: int = 64, dtype: str = "<f4", s
     rf = rng.standard_normal((n_u, n_theta, n_t))
     rf = (rf * 1000).astype(dtype) if np.dtype(dtype).kind == "i" else rf.astype(dtype)
     return RFFrame(
-        frame_index=7, timestamp=12.5, fs=20e6, t0=1e-6, c0=1480.0,
+        frame_index=7,
+        timestamp=12.5,
+        fs=20e6,
+        t0=1e-6,
+        c0=1480.0,
         probe=Probe(positions=positions, pitch=3e-4, centre_frequency=2.2e6, bandwidth=0.8e6),
-        sines=sines, rf=rf, truth={"targets": [{"position_m": [0.0, 0.0, 0.02], "d": 0.01}], "note": "θ"},
+        sines=sines,
+        rf=rf,
+        truth={"targets": [{"position_m": [0.0, 0.0, 0.02], "d": 0.01}], "note": "θ"},
     )
 
 
 def make_grid(three_d: bool = False) -> Grid:
-    return Grid(x=np.linspace(-5e-3, 5e-3, 11), y=np.linspace(-2e-3, 2e-3, 5) if three_d else None,
-                z=np.linspace(10e-3, 20e-3, 13))
+    return Grid(
+        x=np.linspace(-5e-3, 5e-3, 11),
+        y=np.linspace(-2e-3, 2e-3, 5) if three_d else None,
+        z=np.linspace(10e-3, 20e-3, 13),
+    )
 
 
 def make_gamma(three_d: bool = False) -> GammaMap:
     g = make_grid(three_d)
     gamma = np.random.default_rng(1).random(g.shape, dtype=np.float32)
-    return GammaMap(frame_index=7, timestamp=12.5, fingerprint="sphere_10mm", state={"d": 0.01}, grid=g,
-                    gamma=gamma, normalisation=Normalisation(band_hz=(1.8e6, 2.6e6), r_energy=2.0, gamma_m=0.1))
+    return GammaMap(
+        frame_index=7,
+        timestamp=12.5,
+        fingerprint="sphere_10mm",
+        state={"d": 0.01},
+        grid=g,
+        gamma=gamma,
+        normalisation=Normalisation(band_hz=(1.8e6, 2.6e6), r_energy=2.0, gamma_m=0.1),
+    )
 
 
 def make_image() -> ConfocalImage:
@@ -80,21 +96,36 @@ def make_image() -> ConfocalImage:
 
 
 def make_detections() -> Detections:
-    d = Detection(fingerprint="sphere_10mm", position_m=(0.0, 0.0, 0.02), gamma_max=0.8, contrast_c_gamma=9.0,
-                  contrast_c=36.0, pfa=1e-8, precision_m=(1e-4, 2e-5), truth_error_m=3e-5)
+    d = Detection(
+        fingerprint="sphere_10mm",
+        position_m=(0.0, 0.0, 0.02),
+        gamma_max=0.8,
+        contrast_c_gamma=9.0,
+        contrast_c=36.0,
+        pfa=1e-8,
+        precision_m=(1e-4, 2e-5),
+        truth_error_m=3e-5,
+    )
     return Detections(frame_index=7, timestamp=12.5, detections=[d, d.model_copy(update={"truth_error_m": None})])
 
 
 def make_tracks() -> Tracks:
     cov = ((1e-8, 1e-9, 0.0), (1e-9, 2e-8, 0.0), (0.0, 0.0, 3e-8))
-    t = Track(id=1, position_m=(0.0, 0.0, 0.02), velocity_m_s=(0.0, 0.0, 1e-3), covariance=cov,
-              confidence=0.9, age=12)
+    t = Track(id=1, position_m=(0.0, 0.0, 0.02), velocity_m_s=(0.0, 0.0, 1e-3), covariance=cov, confidence=0.9, age=12)
     return Tracks(frame_index=7, timestamp=12.5, tracks=[t])
 
 
 def make_status() -> Status:
-    return Status(node="proc-1", timestamp=1.7e9, frames_processed=100, frame_rate_hz=9.5,
-                  latency_ms=Latency(median=40.0, p95=70.0), dropped=2, rejected=1, dictionary=["a", "b"])
+    return Status(
+        node="proc-1",
+        timestamp=1.7e9,
+        frames_processed=100,
+        frame_rate_hz=9.5,
+        latency_ms=Latency(median=40.0, p95=70.0),
+        dropped=2,
+        rejected=1,
+        dictionary=["a", "b"],
+    )
 
 
 def make_error() -> ErrorReport:
@@ -135,7 +166,7 @@ def split(payload: bytes) -> tuple[dict, bytes]:
     magic, hlen, _ = struct.unpack_from("<8sII", payload)
     assert magic == MAGIC
     start = -(-(PREFIX_SIZE + hlen) // ALIGN) * ALIGN
-    return json.loads(payload[PREFIX_SIZE:PREFIX_SIZE + hlen]), payload[start:]
+    return json.loads(payload[PREFIX_SIZE : PREFIX_SIZE + hlen]), payload[start:]
 
 
 def pack(header: dict, data: bytes, *, magic: bytes = MAGIC, flags: int = 0) -> bytes:
@@ -199,9 +230,9 @@ def test_layout_alignment_and_header(kind: str) -> None:
     payload, hdr = encode_with_header(msg)
     assert payload[:8] == MAGIC
     hlen = struct.unpack_from("<I", payload, 8)[0]
-    assert payload[PREFIX_SIZE:PREFIX_SIZE + hlen] == hdr == header_bytes(msg) == extract_header(payload)
+    assert payload[PREFIX_SIZE : PREFIX_SIZE + hlen] == hdr == header_bytes(msg) == extract_header(payload)
     start = -(-(PREFIX_SIZE + hlen) // ALIGN) * ALIGN
-    assert start % 64 == 0 and set(payload[PREFIX_SIZE + hlen:start]) <= {0}
+    assert start % 64 == 0 and set(payload[PREFIX_SIZE + hlen : start]) <= {0}
     header = json.loads(hdr)
     end = 0
     for d in header["arrays"]:
@@ -211,7 +242,8 @@ def test_layout_alignment_and_header(kind: str) -> None:
     assert len(payload) == start + end
     h = decode_header(hdr)
     assert h.schema_name == msg.schema_name and h.schema_version == (
-        "1.1" if kind.startswith(("RFFrame", "Detections", "Tracks")) else "1.0")
+        "1.1" if kind.startswith(("RFFrame", "Detections", "Tracks")) else "1.0"
+    )
     assert [a.name for a in h.arrays] == [d["name"] for d in header["arrays"]]
     assert decode_header(payload) == h
     if "frame_index" in type(msg).model_fields:
@@ -228,8 +260,9 @@ def test_rf_header_names_buffers_by_field_path() -> None:
 
 def test_array_used_twice_travels_once() -> None:
     ax = np.linspace(0, 1e-2, 9)
-    g = GammaMap(frame_index=0, timestamp=0.0, fingerprint="f", grid=Grid(x=ax, z=ax),
-                 gamma=np.zeros((9, 9), np.float32))
+    g = GammaMap(
+        frame_index=0, timestamp=0.0, fingerprint="f", grid=Grid(x=ax, z=ax), gamma=np.zeros((9, 9), np.float32)
+    )
     header = json.loads(header_bytes(g))
     assert [d["name"] for d in header["arrays"]] == ["grid.x", "gamma"]
     out = decode(encode(g))
@@ -364,8 +397,11 @@ def test_descriptor_problems() -> None:
     refused(tamper(msg, _set("rf", dtype="<U4")), "arrays['rf'].dtype", "not one of")
     refused(tamper(msg, _set("rf", nbytes=n - 4)), "arrays['rf'].nbytes", "does not match shape")
     refused(tamper(msg, _set("rf", shape=[8, 5, -64])), "arrays['rf'].shape")
-    refused(tamper(msg, _set("rf", offset=desc(json.loads(header_bytes(msg)), "rf")["offset"] + 8)),
-            "arrays['rf'].offset", "multiple of 64")
+    refused(
+        tamper(msg, _set("rf", offset=desc(json.loads(header_bytes(msg)), "rf")["offset"] + 8)),
+        "arrays['rf'].offset",
+        "multiple of 64",
+    )
     refused(tamper(msg, _set("rf", offset=0)), "overlaps")
     refused(tamper(msg, _set("rf", name="rf2")), "rf", "buffer 'rf' is not described")
 
@@ -375,8 +411,9 @@ def test_descriptor_problems() -> None:
     refused(tamper(msg, dup), "arrays['sines']", "unique")
 
     def extra(h: dict, d: bytes) -> tuple[dict, bytes]:
-        h["arrays"].append({"name": "spare", "dtype": "|u1", "shape": [3], "offset": len(d) + 64 - len(d) % 64,
-                            "nbytes": 3})
+        h["arrays"].append(
+            {"name": "spare", "dtype": "|u1", "shape": [3], "offset": len(d) + 64 - len(d) % 64, "nbytes": 3}
+        )
         return h, d + bytes(64 - len(d) % 64) + b"abc"
 
     refused(tamper(msg, extra), "arrays['spare']", "not referenced by any field of RFFrame")
@@ -414,8 +451,9 @@ def test_dtype_and_shape_against_the_model() -> None:
     refused(tamper(make_gamma(), gamma_shape), "gamma", "expected the grid's shape (11, 13)")
 
 
-@pytest.mark.parametrize(("field", "value"), [("rf", np.nan), ("rf", np.inf), ("sines", -np.inf),
-                                              ("probe.positions", np.nan)])
+@pytest.mark.parametrize(
+    ("field", "value"), [("rf", np.nan), ("rf", np.inf), ("sines", -np.inf), ("probe.positions", np.nan)]
+)
 def test_non_finite_refused(field: str, value: float) -> None:
     msg = make_rf()
     payload = bytearray(encode(msg))
@@ -497,8 +535,14 @@ def test_construction_checks() -> None:
     p = Probe(positions=np.zeros((4, 3), np.float32), pitch=1e-3, centre_frequency=1e6, bandwidth=1e6)
     assert p.positions.dtype == np.float64  # safe cast
     with pytest.raises(ValidationError, match="symmetric"):
-        Track(id=0, position_m=(0, 0, 0), velocity_m_s=(0, 0, 0),
-              covariance=((1, 1, 0), (0, 1, 0), (0, 0, 1)), confidence=0.5, age=0)
+        Track(
+            id=0,
+            position_m=(0, 0, 0),
+            velocity_m_s=(0, 0, 0),
+            covariance=((1, 1, 0), (0, 1, 0), (0, 0, 1)),
+            confidence=0.5,
+            age=0,
+        )
 
 
 def test_fpcore_conversions() -> None:
@@ -601,11 +645,17 @@ def test_error_report_from_wire_error() -> None:
 def test_keys() -> None:
     k = keys("bench")
     assert (k.rf, k.gamma, k.detections, k.tracks, k.image, k.status, k.errors) == (
-        "fp/bench/rf", "fp/bench/gamma", "fp/bench/detections", "fp/bench/tracks", "fp/bench/image",
-        "fp/bench/status", "fp/bench/errors",
+        "fp/bench/rf",
+        "fp/bench/gamma",
+        "fp/bench/detections",
+        "fp/bench/tracks",
+        "fp/bench/image",
+        "fp/bench/status",
+        "fp/bench/errors",
     )
     assert k.dictionary == "fp/bench/dictionary/**" and k.dictionary_entry("sphere/d10") == (
-        "fp/bench/dictionary/sphere/d10")
+        "fp/bench/dictionary/sphere/d10"
+    )
     assert k.all == "fp/bench/**" and keys("*").rf == "fp/*/rf"
     assert k.for_message(make_rf()) == k.rf and k.for_message(ErrorReport) == k.errors
     assert parse_key("fp/bench/dictionary/x") == ("bench", "dictionary/x")

@@ -132,8 +132,9 @@ def _jsonable(value: Any, field: str) -> Any:
         return value.item()
     if value is None or isinstance(value, (bool, int, float, str)):
         return value
-    raise UFFError(f"{field}: expected JSON-able values (numbers, strings, lists, dicts, arrays), "
-                   f"got {type(value).__name__}")
+    raise UFFError(
+        f"{field}: expected JSON-able values (numbers, strings, lists, dicts, arrays), got {type(value).__name__}"
+    )
 
 
 def _dumps(value: Any, field: str) -> str:
@@ -174,8 +175,7 @@ def _version_attr(f: h5py.File) -> None:
     tid = h5py.h5t.C_S1.copy()
     tid.set_size(len(raw) + 1)
     tid.set_strpad(h5py.h5t.STR_NULLTERM)
-    f.attrs.create("version", np.array([raw], dtype=f"S{len(raw) + 1}"), shape=(1,),
-                   dtype=h5py.Datatype(tid))
+    f.attrs.create("version", np.array([raw], dtype=f"S{len(raw) + 1}"), shape=(1,), dtype=h5py.Datatype(tid))
 
 
 def _uff_group(parent: h5py.Group, key: str, cls: str, n: int = 1) -> h5py.Group:
@@ -251,8 +251,9 @@ def _check_frames(frames: Sequence[Acquisition]) -> None:
             raise UFFError(f"frames[{i}].rf: expected finite samples, found NaN or Inf")
         expected = (fr.probe.n_elements, fr.sequence.n_waves)
         if rf.ndim != 3 or rf.shape[:2] != expected:
-            raise UFFError(f"frames[{i}].rf: expected shape (N_u={expected[0]}, "
-                           f"N_theta={expected[1]}, N_t), got {rf.shape}")
+            raise UFFError(
+                f"frames[{i}].rf: expected shape (N_u={expected[0]}, N_theta={expected[1]}, N_t), got {rf.shape}"
+            )
         if i == 0:
             continue
         checks: list[tuple[str, bool, Any]] = [
@@ -262,18 +263,22 @@ def _check_frames(frames: Sequence[Acquisition]) -> None:
             ("t0", fr.t0 == ref.t0, ref.t0),
             ("c0", fr.c0 == ref.c0, ref.c0),
             ("probe", _same_probe(fr.probe, ref.probe), "the probe of frames[0]"),
-            ("sequence", np.array_equal(fr.sequence.sines, ref.sequence.sines),
-             "the sequence of frames[0]"),
+            ("sequence", np.array_equal(fr.sequence.sines, ref.sequence.sines), "the sequence of frames[0]"),
         ]
         for name, ok, want in checks:
             if not ok:
-                raise UFFError(f"frames[{i}].{name}: expected {want} (all frames of a UFF dataset "
-                               f"share one acquisition set-up)")
+                raise UFFError(
+                    f"frames[{i}].{name}: expected {want} (all frames of a UFF dataset share one acquisition set-up)"
+                )
 
 
 def _same_probe(a: Probe, b: Probe) -> bool:
-    return (np.array_equal(a.positions, b.positions) and a.pitch == b.pitch
-            and a.centre_frequency == b.centre_frequency and a.bandwidth == b.bandwidth)
+    return (
+        np.array_equal(a.positions, b.positions)
+        and a.pitch == b.pitch
+        and a.centre_frequency == b.centre_frequency
+        and a.bandwidth == b.bandwidth
+    )
 
 
 def write_uff(
@@ -314,8 +319,7 @@ def write_uff(
     meta = {
         "writer": "fingerprint fpcore.io.uff",
         "format": 1,
-        "probe": {"pitch": probe.pitch, "centre_frequency": probe.centre_frequency,
-                  "bandwidth": probe.bandwidth},
+        "probe": {"pitch": probe.pitch, "centre_frequency": probe.centre_frequency, "bandwidth": probe.bandwidth},
         "sines": sines,
         "frame_index": [int(fr.frame_index) for fr in seq],
         "timestamp": [float(fr.timestamp) for fr in seq],
@@ -404,11 +408,11 @@ def _choose_dataset(f: h5py.File, dataset: str | None) -> str:
             return key
         raise UFFError(f"dataset: expected one of {names} (uff.channel_data groups), got {dataset!r}")
     if not names:
-        raise UFFError(f"dataset: expected a uff.channel_data group at the file root, found none "
-                       f"(root holds {list(f.keys())})")
+        raise UFFError(
+            f"dataset: expected a uff.channel_data group at the file root, found none (root holds {list(f.keys())})"
+        )
     if len(names) > 1:
-        raise UFFError(f"dataset: the file holds several uff.channel_data datasets {names}; "
-                       f"choose one with dataset=")
+        raise UFFError(f"dataset: the file holds several uff.channel_data datasets {names}; choose one with dataset=")
     return names[0]
 
 
@@ -430,8 +434,7 @@ def _array(group: h5py.Group, key: str, field: str, what: str) -> np.ndarray:
     return arr
 
 
-def _scalar(group: h5py.Group, key: str, field: str, what: str,
-            default: float | None = None) -> float:
+def _scalar(group: h5py.Group, key: str, field: str, what: str, default: float | None = None) -> float:
     if default is not None and key not in group:
         return default
     arr = _array(group, key, field, what)
@@ -446,9 +449,11 @@ def _items(node: h5py.Group, cls: str) -> list[h5py.Group]:
     array_flag = node.attrs.get("array")
     is_array = bool(np.ravel(array_flag)[0]) if array_flag is not None else False
     if kids and (is_array or not any(k in node for k in ("source", "wavefront", "geometry"))):
+
         def order(kv: tuple[str, h5py.Group]) -> tuple[int, str]:
             m = re.search(r"(\d+)$", kv[0])
             return (int(m.group(1)) if m else 0, kv[0])
+
         return [v for _, v in sorted(kids, key=order)]
     return [node]
 
@@ -469,8 +474,10 @@ def _read_probe(cd: h5py.Group, field: str) -> tuple[np.ndarray, float | None]:
         geo = _array(pr, "geometry", f"{field}/geometry", "MATLAB [N x 7] = h5py (7, N)")
         if geo.ndim != 2 or not 3 <= geo.shape[0] <= 7:
             hint = " (stored row-major? transpose it)" if geo.ndim == 2 and 3 <= geo.shape[1] <= 7 else ""
-            raise UFFError(f"{field}/geometry: expected h5py shape (7, N_elements) (MATLAB "
-                           f"[N x 7]: x y z theta phi width height), got {geo.shape}{hint}")
+            raise UFFError(
+                f"{field}/geometry: expected h5py shape (7, N_elements) (MATLAB "
+                f"[N x 7]: x y z theta phi width height), got {geo.shape}{hint}"
+            )
         return np.ascontiguousarray(geo[:3].T, dtype=np.float64), pitch
     if cls == "uff.linear_array":
         n = int(_scalar(pr, "N", f"{field}/N", "number of elements"))
@@ -502,26 +509,33 @@ def _read_sequence(cd: h5py.Group, field: str, c0: float) -> tuple[np.ndarray, n
         if "wavefront" in w:
             wavefront = int(round(_scalar(w, "wavefront", f"{wf_field}/wavefront", "0 = plane")))
         if wavefront not in (0, 1):
-            raise UFFError(f"{wf_field}/wavefront: expected plane (0), got "
-                           f"{_WAVEFRONTS.get(wavefront, wavefront)} ({wavefront})")
+            raise UFFError(
+                f"{wf_field}/wavefront: expected plane (0), got {_WAVEFRONTS.get(wavefront, wavefront)} ({wavefront})"
+            )
         src = _node(w, "source", f"{wf_field}/source", "a uff.point with the wave direction")
         dist = _scalar(src, "distance", f"{wf_field}/source/distance", "Inf", default=0.0)
         if wavefront == 1 and not math.isinf(dist):
             a0 = _scalar(src, "azimuth", f"{wf_field}/source/azimuth", "rad", default=0.0)
             e0 = _scalar(src, "elevation", f"{wf_field}/source/elevation", "rad", default=0.0)
             kind = "focused" if dist * math.cos(a0) * math.cos(e0) > 0 else "diverging"
-            raise UFFError(f"{wf_field}/source/distance: expected Inf (plane wave), got {dist:g} m "
-                           f"({kind} wave); only plane waves are supported")
+            raise UFFError(
+                f"{wf_field}/source/distance: expected Inf (plane wave), got {dist:g} m "
+                f"({kind} wave); only plane waves are supported"
+            )
         a = _scalar(src, "azimuth", f"{wf_field}/source/azimuth", "angle in rad", default=0.0)
         e = _scalar(src, "elevation", f"{wf_field}/source/elevation", "angle in rad", default=0.0)
         if not (math.cos(a) * math.cos(e) > 0):
-            raise UFFError(f"{wf_field}/source/azimuth: expected a wave travelling into z > 0 "
-                           f"(|azimuth|, |elevation| < 90 deg), got ({a:g}, {e:g}) rad")
+            raise UFFError(
+                f"{wf_field}/source/azimuth: expected a wave travelling into z > 0 "
+                f"(|azimuth|, |elevation| < 90 deg), got ({a:g}, {e:g}) rad"
+            )
         if "sound_speed" in w:
             cw = _scalar(w, "sound_speed", f"{wf_field}/sound_speed", "m/s")
             if not math.isclose(cw, c0, rel_tol=1e-6):
-                raise UFFError(f"{wf_field}/sound_speed: expected the channel_data sound_speed "
-                               f"{c0:g} m/s (one c0 per acquisition), got {cw:g} m/s")
+                raise UFFError(
+                    f"{wf_field}/sound_speed: expected the channel_data sound_speed "
+                    f"{c0:g} m/s (one c0 per acquisition), got {cw:g} m/s"
+                )
         az.append(a)
         el.append(e)
         delay.append(_scalar(w, "delay", f"{wf_field}/delay", "s", default=0.0))
@@ -568,7 +582,7 @@ def _align(rf: np.ndarray, shifts: np.ndarray) -> np.ndarray:
     integer = np.abs(shifts - np.round(shifts)) < 1e-6
     for w in np.nonzero(integer)[0]:
         s = int(round(shifts[w]))
-        out[:, w, s:s + n_t] = rf[:, w]
+        out[:, w, s : s + n_t] = rf[:, w]
     frac = np.nonzero(~integer)[0]
     if frac.size:
         n_fft = sfft.next_fast_len(n_out + 1, real=True)
@@ -598,11 +612,11 @@ def read_uff(
         fs = _scalar(cd, "sampling_frequency", f"{name}/sampling_frequency", "Hz")
         t_init = _scalar(cd, "initial_time", f"{name}/initial_time", "time of the first sample, s")
         c0 = _scalar(cd, "sound_speed", f"{name}/sound_speed", "m/s")
-        fmod = _scalar(cd, "modulation_frequency", f"{name}/modulation_frequency",
-                       "0 for RF", default=0.0)
+        fmod = _scalar(cd, "modulation_frequency", f"{name}/modulation_frequency", "0 for RF", default=0.0)
         if fmod != 0:
-            raise UFFError(f"{name}/modulation_frequency: expected 0 (RF data), got {fmod:g} Hz "
-                           f"(IQ data are not supported)")
+            raise UFFError(
+                f"{name}/modulation_frequency: expected 0 (RF data), got {fmod:g} Hz (IQ data are not supported)"
+            )
         if not (fs > 0 and math.isfinite(fs)):
             raise UFFError(f"{name}/sampling_frequency: expected a positive frequency in Hz, got {fs}")
         if not (c0 > 0 and math.isfinite(c0)):
@@ -620,13 +634,18 @@ def read_uff(
         full = (1,) * (4 - len(shape)) + tuple(shape) if 2 <= len(shape) <= 4 else None
         if full is None or full[1:3] != (n_w, n_u):
             hint = ""
-            if len(shape) >= 2 and shape[1] == n_u and (
-                    (len(shape) == 2 and n_w == 1) or (len(shape) >= 3 and shape[2] == n_w)):
+            if (
+                len(shape) >= 2
+                and shape[1] == n_u
+                and ((len(shape) == 2 and n_w == 1) or (len(shape) >= 3 and shape[2] == n_w))
+            ):
                 hint = " (axes look row-major [time, channel, wave, frame]: reverse them)"
-            raise UFFError(f"{name}/data: expected h5py shape (N_frames, N_waves={n_w}, "
-                           f"N_channels={n_u}, N_samples) (MATLAB [time x channel x wave x frame]); "
-                           f"got {shape}: the channel axis must match the probe's {n_u} elements and "
-                           f"the wave axis the sequence's {n_w} waves{hint}")
+            raise UFFError(
+                f"{name}/data: expected h5py shape (N_frames, N_waves={n_w}, "
+                f"N_channels={n_u}, N_samples) (MATLAB [time x channel x wave x frame]); "
+                f"got {shape}: the channel axis must match the probe's {n_u} elements and "
+                f"the wave axis the sequence's {n_w} waves{hint}"
+            )
         n_frames = full[0]
         idx = list(range(n_frames))
         if frames is not None:
@@ -648,11 +667,9 @@ def read_uff(
         frame_index = per_frame("frame_index") or list(range(n_frames))
         prf_key = "PRF" if "PRF" in cd else "prf"
         prf = _scalar(cd, prf_key, f"{name}/{prf_key}", "Hz", default=0.0)
-        timestamps = per_frame("timestamp") or [i * n_w / prf if prf > 0 else 0.0
-                                                for i in range(n_frames)]
+        timestamps = per_frame("timestamp") or [i * n_w / prf if prf > 0 else 0.0 for i in range(n_frames)]
         msines = meta.get("sines")
-        if msines is not None and np.shape(msines) == sines.shape and np.allclose(
-                msines, sines, rtol=0, atol=1e-9):
+        if msines is not None and np.shape(msines) == sines.shape and np.allclose(msines, sines, rtol=0, atol=1e-9):
             sines = np.asarray(msines, dtype=np.float64)  # exact values of our own writer
 
         shifts = (delays - delays.min()) * fs
@@ -664,8 +681,7 @@ def read_uff(
             if not np.issubdtype(rf.dtype, np.floating):
                 rf = rf.astype(np.float32)
             if not np.all(np.isfinite(rf)):
-                raise UFFError(f"{name}/data: expected finite RF samples, found NaN or Inf in "
-                               f"frame {i}")
+                raise UFFError(f"{name}/data: expected finite RF samples, found NaN or Inf in frame {i}")
             if np.any(shifts > 1e-6):
                 rf = _align(rf, shifts)
             rfs.append((i, rf))
@@ -676,10 +692,14 @@ def read_uff(
         fc, bw = mprobe.get("centre_frequency"), mprobe.get("bandwidth")
         if not (fc and bw) and "pulse" in cd and isinstance(cd["pulse"], h5py.Group):
             pulse = cd["pulse"]
-            pfc = _scalar(pulse, "center_frequency", f"{name}/pulse/center_frequency", "Hz",
-                          default=0.0)
-            pbw = _scalar(pulse, "fractional_bandwidth", f"{name}/pulse/fractional_bandwidth",
-                          "fraction of the centre frequency", default=0.0)
+            pfc = _scalar(pulse, "center_frequency", f"{name}/pulse/center_frequency", "Hz", default=0.0)
+            pbw = _scalar(
+                pulse,
+                "fractional_bandwidth",
+                f"{name}/pulse/fractional_bandwidth",
+                "fraction of the centre frequency",
+                default=0.0,
+            )
             if pfc > 0 and pbw > 0:
                 fc, bw = pfc, pbw * pfc
         if not (fc and bw):
@@ -687,8 +707,9 @@ def read_uff(
             fc, bw = _estimate_band(sample, fs)
         pitch = mprobe.get("pitch") or pitch or _min_spacing(positions)
         if not pitch or pitch <= 0:
-            raise UFFError(f"{name}/probe: expected a pitch (linear_array.pitch or several "
-                           f"distinct element positions), found none")
+            raise UFFError(
+                f"{name}/probe: expected a pitch (linear_array.pitch or several distinct element positions), found none"
+            )
 
     try:
         probe = Probe(positions, float(pitch), float(fc), float(bw))
@@ -696,9 +717,17 @@ def read_uff(
     except ValueError as exc:
         raise UFFError(f"{name}: {exc}") from exc
     return [
-        Acquisition(rf=rf, fs=fs, t0=t0, c0=c0, probe=probe, sequence=sequence,
-                    frame_index=int(frame_index[i]), timestamp=float(timestamps[i]),
-                    truth=dict(truths[i]) if isinstance(truths[i], dict) else {"value": truths[i]})
+        Acquisition(
+            rf=rf,
+            fs=fs,
+            t0=t0,
+            c0=c0,
+            probe=probe,
+            sequence=sequence,
+            frame_index=int(frame_index[i]),
+            timestamp=float(timestamps[i]),
+            truth=dict(truths[i]) if isinstance(truths[i], dict) else {"value": truths[i]},
+        )
         for i, rf in rfs
     ]
 

@@ -62,8 +62,9 @@ def cross_section(t: complex | np.ndarray, k: float, dim: int) -> np.ndarray:
     return t2 / (4 * np.pi) if dim == 3 else t2 / (4 * k)
 
 
-def foldy_lax_excitation(points: np.ndarray, t: complex | np.ndarray, k: float, incident: np.ndarray,
-                         dim: int) -> np.ndarray:
+def foldy_lax_excitation(
+    points: np.ndarray, t: complex | np.ndarray, k: float, incident: np.ndarray, dim: int
+) -> np.ndarray:
     """Exciting fields ψ (N_s, N_rhs) solving (I − G T) ψ = ψ_inc, G_jl = G(r_j, r_l) (j ≠ l), T = diag(t)."""
     p = np.asarray(points, dtype=np.float64)
     n = p.shape[0]
@@ -79,8 +80,9 @@ def foldy_lax_excitation(points: np.ndarray, t: complex | np.ndarray, k: float, 
     return np.linalg.solve(m, np.asarray(incident, dtype=np.complex128))
 
 
-def random_slab(rng: np.random.Generator, density: float, width: float, thickness: float, dim: int,
-                z0: float = 0.0) -> np.ndarray:
+def random_slab(
+    rng: np.random.Generator, density: float, width: float, thickness: float, dim: int, z0: float = 0.0
+) -> np.ndarray:
     """Poisson points (N, 3) in [−w/2, w/2]^(dim−1) × [z0, z0 + thickness] (y = 0 in 2D)."""
     vol = width ** (dim - 1) * thickness
     n = rng.poisson(density * vol)
@@ -90,9 +92,18 @@ def random_slab(rng: np.random.Generator, density: float, width: float, thicknes
     return np.stack([x, y, z], axis=1)
 
 
-def coherent_wave(rng: np.random.Generator, k: float, t: complex, density: float, width: float,
-                  thickness: float, depths: np.ndarray, dim: int, n_real: int = 40,
-                  window: float | None = None) -> np.ndarray:
+def coherent_wave(
+    rng: np.random.Generator,
+    k: float,
+    t: complex,
+    density: float,
+    width: float,
+    thickness: float,
+    depths: np.ndarray,
+    dim: int,
+    n_real: int = 40,
+    window: float | None = None,
+) -> np.ndarray:
     """⟨ψ⟩(z)/ψ_inc(z) in a slab [0, thickness] of random Foldy–Lax scatterers, plane wave at normal incidence.
 
     The lateral average is taken analytically with a Gaussian window w(x) (std `window`, default

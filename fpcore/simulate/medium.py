@@ -120,8 +120,16 @@ class ScatteringLayer:
         dist = np.linalg.norm(np.asarray(elements, float) - np.asarray(ref, float)[None, :], axis=1)
         return np.exp(-dist * depth / max(float(ref[2]), 1e-12) / (2 * self.l_ext))
 
-    def attenuate(self, h: np.ndarray, position: np.ndarray, diameter: float, elements: np.ndarray,
-                  sines: np.ndarray, rho0: float = 1000.0, c0: float = 1500.0) -> np.ndarray:
+    def attenuate(
+        self,
+        h: np.ndarray,
+        position: np.ndarray,
+        diameter: float,
+        elements: np.ndarray,
+        sines: np.ndarray,
+        rho0: float = 1000.0,
+        c0: float = 1500.0,
+    ) -> np.ndarray:
         """Apply both legs and the interface transmission 1 − R² to a target's H (N_f, N_u, N_θ)."""
         ref = self.reference_point(position, diameter)
         if ref[2] <= self.z_surface:
@@ -131,8 +139,9 @@ class ScatteringLayer:
         return h * w.astype(np.float32)[None, :, :]
 
     # -- interface --------------------------------------------------------------------------------
-    def interface_echo(self, elements: np.ndarray, sines: np.ndarray, freqs: np.ndarray, c0: float,
-                       rho0: float = 1000.0) -> np.ndarray:
+    def interface_echo(
+        self, elements: np.ndarray, sines: np.ndarray, freqs: np.ndarray, c0: float, rho0: float = 1000.0
+    ) -> np.ndarray:
         """H = R exp(−ik(s·u + 2 z_s c)) (N_f, N_u, N_θ) complex64."""
         k = 2 * np.pi * np.asarray(freqs, dtype=np.float64) / c0
         c = cosines(sines)
@@ -157,8 +166,9 @@ class ScatteringLayer:
     def halo_radius2(self, s: np.ndarray, aperture_radius: float) -> np.ndarray:
         return aperture_radius**2 + 4 * (self.ls / 3.0) * np.maximum(s, 0.0)
 
-    def intensity(self, tau: np.ndarray, c0: float, aperture_radius: float, dim: int,
-                  pulse_energy: float) -> np.ndarray:
+    def intensity(
+        self, tau: np.ndarray, c0: float, aperture_radius: float, dim: int, pulse_energy: float
+    ) -> np.ndarray:
         """⟨M(t)²⟩ (relative to the incident pulse peak²) τ = t − t_on after the surface echo."""
         v = c0 if self.energy_velocity is None else self.energy_velocity
         s = v * np.maximum(np.asarray(tau, dtype=np.float64), 0.0)
@@ -204,8 +214,18 @@ class DiffuseBackground:
     The RF background is S(f)·V(f); it is statistically independent of every target.
     """
 
-    def __init__(self, layer: ScatteringLayer, elements: np.ndarray, sines: np.ndarray, window: TimeWindow,
-                 band: Band, c0: float, dim: int, aperture_radius: float, rng: np.random.Generator) -> None:
+    def __init__(
+        self,
+        layer: ScatteringLayer,
+        elements: np.ndarray,
+        sines: np.ndarray,
+        window: TimeWindow,
+        band: Band,
+        c0: float,
+        dim: int,
+        aperture_radius: float,
+        rng: np.random.Generator,
+    ) -> None:
         self.layer, self.window, self.band, self.c0, self.dim = layer, window, band, c0, dim
         self.rng = rng
         self.bins = window.band_bins(band)
@@ -255,8 +275,11 @@ class DiffuseBackground:
         tab = np.linspace(0.0, max(float(tau.max()), 1e-9), 4096)
         rate = layer.intensity(tab, c0, aperture_radius, dim, pulse_energy=1.0)
         self.envelope = np.interp(tau, tab, np.sqrt(rate), left=0.0).astype(np.float32)
-        self.g1 = (np.interp(tau, tab, layer.correlation_per_frame(tab, c0, band.centre)).astype(np.float32)
-                   if layer.frame_displacement > 0 else None)
+        self.g1 = (
+            np.interp(tau, tab, layer.correlation_per_frame(tab, c0, band.centre)).astype(np.float32)
+            if layer.frame_displacement > 0
+            else None
+        )
         self.state: np.ndarray | None = None
         self._frozen: np.ndarray | None = None
         self._phase = np.exp(-2j * np.pi * self.freqs * window.t0).astype(np.complex64)

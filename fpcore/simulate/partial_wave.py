@@ -44,10 +44,12 @@ _F = TypeVar("_F", bound=Callable[..., np.ndarray])
 
 def _quiet(fn: _F) -> _F:
     """Silence over/underflow of high-order Bessel functions at small arguments (masked out anyway)."""
+
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         with np.errstate(all="ignore"):
             return fn(*args, **kwargs)
+
     return wrapper  # type: ignore[return-value]
 
 
@@ -99,8 +101,7 @@ def _active(ka: np.ndarray, n: np.ndarray) -> np.ndarray:
     return np.asarray(n) <= np.ceil(ka + 4.05 * np.cbrt(ka) + 12)
 
 
-def _solve_modes(rows: list[list[np.ndarray]], rhs: list[np.ndarray], n: np.ndarray,
-                 active: np.ndarray) -> np.ndarray:
+def _solve_modes(rows: list[list[np.ndarray]], rhs: list[np.ndarray], n: np.ndarray, active: np.ndarray) -> np.ndarray:
     """Solve the per-mode 3×3 systems (2×2 where n = 0) for the first unknown A_n (0 where inactive)."""
     shape = np.broadcast(*[x for r in rows for x in r], *rhs).shape
     m = np.zeros(shape + (3, 3), dtype=np.complex128)
@@ -126,8 +127,9 @@ def _solve_modes(rows: list[list[np.ndarray]], rhs: list[np.ndarray], n: np.ndar
 
 
 @_quiet
-def sphere_coefficients(ka: np.ndarray, n: np.ndarray, mat: Elastic, rho0: float = 1000.0,
-                        c0: float = 1500.0) -> np.ndarray:
+def sphere_coefficients(
+    ka: np.ndarray, n: np.ndarray, mat: Elastic, rho0: float = 1000.0, c0: float = 1500.0
+) -> np.ndarray:
     """Faran coefficients A_n(ka) of an elastic sphere (physicist's convention, see module doc).
 
     ka and n broadcast together (e.g. ka[:, None], n[None, :]). The sphere radius only enters via ka.
@@ -170,8 +172,9 @@ def rigid_sphere_coefficients(ka: np.ndarray, n: np.ndarray) -> np.ndarray:
 
 
 @_quiet
-def fluid_sphere_coefficients(ka: np.ndarray, n: np.ndarray, rho_ratio: float, c_ratio: float,
-                              loss: float = 0.0) -> np.ndarray:
+def fluid_sphere_coefficients(
+    ka: np.ndarray, n: np.ndarray, rho_ratio: float, c_ratio: float, loss: float = 0.0
+) -> np.ndarray:
     """Fluid sphere (density ρ1 = rho_ratio ρ0, speed c1 = c_ratio c0):
     A_n = −(j_n' − Q j_n)/(h_n' − Q h_n), Q = (k1 ρ0)/(k ρ1) j_n'(k1 a)/j_n(k1 a)."""
     x = np.asarray(ka, dtype=np.float64)
@@ -185,8 +188,9 @@ def fluid_sphere_coefficients(ka: np.ndarray, n: np.ndarray, rho_ratio: float, c
 
 
 @_quiet
-def cylinder_coefficients(ka: np.ndarray, n: np.ndarray, mat: Elastic, rho0: float = 1000.0,
-                          c0: float = 1500.0) -> np.ndarray:
+def cylinder_coefficients(
+    ka: np.ndarray, n: np.ndarray, mat: Elastic, rho0: float = 1000.0, c0: float = 1500.0
+) -> np.ndarray:
     """Faran coefficients A_n(ka) of an infinite elastic cylinder at normal incidence (2D)."""
     if mat.is_fluid:
         return fluid_cylinder_coefficients(ka, n, mat.density / rho0, mat.c_p / c0, mat.loss_p)
@@ -222,8 +226,9 @@ def rigid_cylinder_coefficients(ka: np.ndarray, n: np.ndarray) -> np.ndarray:
 
 
 @_quiet
-def fluid_cylinder_coefficients(ka: np.ndarray, n: np.ndarray, rho_ratio: float, c_ratio: float,
-                                loss: float = 0.0) -> np.ndarray:
+def fluid_cylinder_coefficients(
+    ka: np.ndarray, n: np.ndarray, rho_ratio: float, c_ratio: float, loss: float = 0.0
+) -> np.ndarray:
     """Fluid cylinder: A_n = −(J_n' − Q J_n)/(H_n' − Q H_n), Q = (k1 ρ0)/(k ρ1) J_n'(k1 a)/J_n(k1 a)."""
     x = np.asarray(ka, dtype=np.float64)
     x1 = x / (c_ratio / (1 + 1j * loss))

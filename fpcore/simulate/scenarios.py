@@ -47,8 +47,15 @@ from .scene import Placement, Scenario
 from .targets import ElasticCylinder, ElasticSphere, MirrorSegment, PointCluster
 from .waves import Band, TimeWindow, radiate_points
 
-__all__ = ["scenario", "SCENARIOS", "sinking_sphere", "sinking_cylinder", "fast_cylinder", "lesion_marker",
-           "muscle_fibres"]
+__all__ = [
+    "scenario",
+    "SCENARIOS",
+    "sinking_sphere",
+    "sinking_cylinder",
+    "fast_cylinder",
+    "lesion_marker",
+    "muscle_fibres",
+]
 
 
 def _sinking(a: np.ndarray, b: np.ndarray, n: int, rate: float = 2.0) -> np.ndarray:
@@ -68,15 +75,29 @@ _SUSPENSION_ROI_Z = (20e-3, 31e-3)
 def _granular_suspension(**overrides: Any) -> ScatteringLayer:
     """The vibrated granular suspension of the paper's first experiment (Supplementary S1): surface 16 mm
     below the array, ℓ_s = 1.8 mm, ℓ_a = 8 mm, 50 µm scatterer motion between frames; `overrides` win."""
-    params: dict[str, Any] = dict(z_surface=16e-3, ls=1.8e-3, la=8e-3, density=1900.0, sound_speed=1600.0,
-                                  frame_displacement=50e-6, roughness=0.15e-3, attenuation_depth="front")
+    params: dict[str, Any] = dict(
+        z_surface=16e-3,
+        ls=1.8e-3,
+        la=8e-3,
+        density=1900.0,
+        sound_speed=1600.0,
+        frame_displacement=50e-6,
+        roughness=0.15e-3,
+        attenuation_depth="front",
+    )
     params.update(overrides)
     return ScatteringLayer(**params)
 
 
-def sinking_sphere(quick: bool = False, seed: int = 0, n_frames: int = 32, noise_rms: float = 2e-4,
-                   sink: tuple[float, float] = (8e-3, 8.6e-3), calibration: str = "nominal",
-                   **layer_overrides: Any) -> Scenario:
+def sinking_sphere(
+    quick: bool = False,
+    seed: int = 0,
+    n_frames: int = 32,
+    noise_rms: float = 2e-4,
+    sink: tuple[float, float] = (8e-3, 8.6e-3),
+    calibration: str = "nominal",
+    **layer_overrides: Any,
+) -> Scenario:
     """Paper experiment 1: two metal spheres in a vibrated granular suspension, one sinking.
 
     Geometry (paper main text and Supplementary S1): suspension surface 16 mm below the array;
@@ -111,18 +132,36 @@ def sinking_sphere(quick: bool = False, seed: int = 0, n_frames: int = 32, noise
     p1 = _sinking(np.array([-4.75e-3, 0.0, zs + sink[0]]), np.array([-5.2e-3, 0.25e-3, zs + sink[1]]), n_frames)
     p2 = np.array([[4.75e-3, 0.0, zs + 7.5e-3]])
     axis = np.array([0.0, 0.0, 25e-3])
-    s1 = Placement(ElasticSphere(10e-3, name="sphere1"), p1, axis if calibration == "axis" else p1[0],
-                   kind="sphere")
-    s2 = Placement(ElasticSphere(8e-3, name="sphere2"), p2, axis if calibration == "axis" else p2[0],
-                   kind="sphere")
-    return Scenario("sinking-sphere", probe, seq, c0, window, band, n_frames, {"sphere1": s1, "sphere2": s2},
-                    dim=3, seed=seed, quick=quick, layer=layer, noise_rms=noise_rms,
-                    calibration_noise_rms=0.1 * noise_rms, description=sinking_sphere.__doc__ or "",
-                    roi=Roi((-11e-3, 11e-3), _SUSPENSION_ROI_Z, 0.25e-3, y_range=(-5e-3, 5e-3)))
+    s1 = Placement(ElasticSphere(10e-3, name="sphere1"), p1, axis if calibration == "axis" else p1[0], kind="sphere")
+    s2 = Placement(ElasticSphere(8e-3, name="sphere2"), p2, axis if calibration == "axis" else p2[0], kind="sphere")
+    return Scenario(
+        "sinking-sphere",
+        probe,
+        seq,
+        c0,
+        window,
+        band,
+        n_frames,
+        {"sphere1": s1, "sphere2": s2},
+        dim=3,
+        seed=seed,
+        quick=quick,
+        layer=layer,
+        noise_rms=noise_rms,
+        calibration_noise_rms=0.1 * noise_rms,
+        description=sinking_sphere.__doc__ or "",
+        roi=Roi((-11e-3, 11e-3), _SUSPENSION_ROI_Z, 0.25e-3, y_range=(-5e-3, 5e-3)),
+    )
 
 
-def sinking_cylinder(quick: bool = False, seed: int = 0, n_frames: int = 32, noise_rms: float = 2e-4,
-                     sink: tuple[float, float] = (8e-3, 8.6e-3), **layer_overrides: Any) -> Scenario:
+def sinking_cylinder(
+    quick: bool = False,
+    seed: int = 0,
+    n_frames: int = 32,
+    noise_rms: float = 2e-4,
+    sink: tuple[float, float] = (8e-3, 8.6e-3),
+    **layer_overrides: Any,
+) -> Scenario:
     """2D analogue of `sinking_sphere`: two elastic cylinders under a granular suspension, one settling.
 
     Linear array along x (pitch λ/2 at 2.2 MHz; 128 elements, quick: 64), 11 plane waves with sines in
@@ -147,15 +186,35 @@ def sinking_cylinder(quick: bool = False, seed: int = 0, n_frames: int = 32, noi
     p2 = np.array([[4.75e-3, 0.0, zs + 7.5e-3]])
     c1 = Placement(ElasticCylinder(10e-3, name="cylinder1"), p1, p1[0], kind="cylinder")
     c2 = Placement(ElasticCylinder(8e-3, name="cylinder2"), p2, p2[0], kind="cylinder")
-    return Scenario("sinking-cylinder", probe, seq, c0, window, band, n_frames,
-                    {"cylinder1": c1, "cylinder2": c2}, dim=2, seed=seed, quick=quick, layer=layer,
-                    noise_rms=noise_rms, calibration_noise_rms=0.1 * noise_rms,
-                    description=sinking_cylinder.__doc__ or "", roi=Roi((-11e-3, 11e-3), _SUSPENSION_ROI_Z, 0.1e-3))
+    return Scenario(
+        "sinking-cylinder",
+        probe,
+        seq,
+        c0,
+        window,
+        band,
+        n_frames,
+        {"cylinder1": c1, "cylinder2": c2},
+        dim=2,
+        seed=seed,
+        quick=quick,
+        layer=layer,
+        noise_rms=noise_rms,
+        calibration_noise_rms=0.1 * noise_rms,
+        description=sinking_cylinder.__doc__ or "",
+        roi=Roi((-11e-3, 11e-3), _SUSPENSION_ROI_Z, 0.1e-3),
+    )
 
 
-def fast_cylinder(quick: bool = False, seed: int = 0, n_frames: int = 4,
-                  velocity: tuple[float, float, float] = (0.25, 0.0, 0.1), prf: float = 1000.0,
-                  noise_rms: float = 2e-4, diameter: float = 10e-3) -> Scenario:
+def fast_cylinder(
+    quick: bool = False,
+    seed: int = 0,
+    n_frames: int = 4,
+    velocity: tuple[float, float, float] = (0.25, 0.0, 0.1),
+    prf: float = 1000.0,
+    noise_rms: float = 2e-4,
+    diameter: float = 10e-3,
+) -> Scenario:
     """A target moving fast enough to smear within one plane-wave sequence (motion-aware fingerprints).
 
     2D, water only: a 10 mm elastic cylinder (the spheres' material) crossing the field at `velocity`
@@ -173,11 +232,26 @@ def fast_cylinder(quick: bool = False, seed: int = 0, n_frames: int = 4,
     v = np.asarray(velocity, dtype=float)
     start = np.array([-1e-3, 0.0, 25e-3])
     traj = start[None, :] + v[None, :] * (np.arange(max(n_frames, 2))[:, None] / frame_rate)  # ≥ 2: moving
-    pl = Placement(ElasticCylinder(diameter, name="cylinder"), traj, np.array([0.0, 0.0, 25e-3]), kind="cylinder",
-                   in_medium=False)
-    return Scenario("fast-cylinder", probe, seq, c0, window, Band(1.8e6, 2.6e6), n_frames, {"cylinder": pl},
-                    dim=2, seed=seed, quick=quick, frame_rate=frame_rate, noise_rms=noise_rms,
-                    calibration_noise_rms=0.1 * noise_rms, description=fast_cylinder.__doc__ or "")
+    pl = Placement(
+        ElasticCylinder(diameter, name="cylinder"), traj, np.array([0.0, 0.0, 25e-3]), kind="cylinder", in_medium=False
+    )
+    return Scenario(
+        "fast-cylinder",
+        probe,
+        seq,
+        c0,
+        window,
+        Band(1.8e6, 2.6e6),
+        n_frames,
+        {"cylinder": pl},
+        dim=2,
+        seed=seed,
+        quick=quick,
+        frame_rate=frame_rate,
+        noise_rms=noise_rms,
+        calibration_noise_rms=0.1 * noise_rms,
+        description=fast_cylinder.__doc__ or "",
+    )
 
 
 def marker_cage(diameter: float = 3e-3, n_per_ring: int = 12) -> np.ndarray:
@@ -195,8 +269,14 @@ def marker_cage(diameter: float = 3e-3, n_per_ring: int = 12) -> np.ndarray:
     return pts[keep]
 
 
-def lesion_marker(quick: bool = False, seed: int = 0, n_frames: int | None = None, calibration: str = "nominal",
-                  marker_points: int = 16, marker_inverse_t: float = 0.5) -> Scenario:
+def lesion_marker(
+    quick: bool = False,
+    seed: int = 0,
+    n_frames: int | None = None,
+    calibration: str = "nominal",
+    marker_points: int = 16,
+    marker_inverse_t: float = 0.5,
+) -> Scenario:
     """Paper experiment 2: a lesion marker in foam speckle at z − z_s ≈ ℓ_s (3D, matrix array).
 
     Foam (ℓ_s = 20 mm, ℓ_a = 60 mm) below 12 mm of water; the marker (a 3 mm wire cage of
@@ -234,28 +314,50 @@ def lesion_marker(quick: bool = False, seed: int = 0, n_frames: int | None = Non
     kc = 2 * np.pi * fc / c0
     x_res = marker_inverse_t * kc / (4 * np.pi)  # Re(1/t) in units of the radiative part Im(1/t) = k/4π
     cage = marker_cage(3e-3, marker_points)
-    marker = PointCluster(cage, np.full(cage.shape[0], x_res), loss=0.05, coupled=True, name="marker", dim=3,
-                          size=3e-3)
+    marker = PointCluster(cage, np.full(cage.shape[0], x_res), loss=0.05, coupled=True, name="marker", dim=3, size=3e-3)
     r_m = np.array([3.5e-3, 4.5e-3, 32e-3])
     r0 = r_m - np.array([0.0, 0.0, 2e-3]) if calibration == "nominal" else np.array([0.0, 0.0, 30e-3])
     pl = Placement(marker, r_m[None, :], r0, kind="marker")
     roi = Roi((0.5e-3, 6.5e-3), (28e-3, 36e-3), 0.15e-3, y_range=(1.5e-3, 7.5e-3))  # marker ± 3 mm (z: ± 4 mm)
-    return Scenario("lesion-marker", probe, seq, c0, window, band, n_frames, {"marker": pl}, dim=3, seed=seed,
-                    quick=quick, layer=layer, speckle=(pts, t), noise_rms=2e-4, calibration_noise_rms=2e-5,
-                    description=lesion_marker.__doc__ or "", roi=roi)
+    return Scenario(
+        "lesion-marker",
+        probe,
+        seq,
+        c0,
+        window,
+        band,
+        n_frames,
+        {"marker": pl},
+        dim=3,
+        seed=seed,
+        quick=quick,
+        layer=layer,
+        speckle=(pts, t),
+        noise_rms=2e-4,
+        calibration_noise_rms=2e-5,
+        description=lesion_marker.__doc__ or "",
+        roi=roi,
+    )
 
 
-def bipennate_orientation(x: np.ndarray, z: np.ndarray, alpha_top: float = np.deg2rad(-20.0),
-                          alpha_deep: float = np.deg2rad(20.0), z_apo: float = 15e-3, width: float = 2e-3,
-                          gradient: float = np.deg2rad(0.5) / 1e-3) -> np.ndarray:
+def bipennate_orientation(
+    x: np.ndarray,
+    z: np.ndarray,
+    alpha_top: float = np.deg2rad(-20.0),
+    alpha_deep: float = np.deg2rad(20.0),
+    z_apo: float = 15e-3,
+    width: float = 2e-3,
+    gradient: float = np.deg2rad(0.5) / 1e-3,
+) -> np.ndarray:
     """Fibre tilt α(x, z) (rad) of the muscle-fibres scenario: −20° above the aponeurosis, +20° below,
     a tanh transition of half-width `width`, plus a lateral gradient (0.5°/mm)."""
     w = 0.5 * (1 + np.tanh((np.asarray(z) - z_apo) / width))
     return (1 - w) * alpha_top + w * alpha_deep + gradient * np.asarray(x)
 
 
-def muscle_fibres(quick: bool = False, seed: int = 0, n_frames: int = 4,
-                  z_range: tuple[float, float] = (6e-3, 25e-3)) -> Scenario:
+def muscle_fibres(
+    quick: bool = False, seed: int = 0, n_frames: int = 4, z_range: tuple[float, float] = (6e-3, 25e-3)
+) -> Scenario:
     """Calf experiment: fibres with a varying orientation, linear array 5.5–9.5 MHz (2D).
 
     Fibres (Poisson centres, 0.4 per mm², length 1.5–4 mm, reflectivity ≈ 0.1) fill `z_range` across
@@ -306,17 +408,43 @@ def muscle_fibres(quick: bool = False, seed: int = 0, n_frames: int = 4,
     clutter_amp = np.concatenate([fib_amp, sp_amp]).astype(np.complex128)
     fibres = _BornCloud(clutter_pts, clutter_amp, dim=2)
     calib = MirrorSegment(2.5e-3, 0.0, reflectivity=0.1, name="fibre", dim=2)
-    pl = Placement(calib, np.array([[0.0, 0.0, 15e-3]]), np.array([0.0, 0.0, 15e-3]), kind="fibre",
-                   in_medium=False, in_scene=False)
-    truth = {"fibres": [{"position_m": [float(x), 0.0, float(z)], "alpha_rad": float(a), "length_m": float(L)}
-                        for x, z, a, L in zip(xc, zc, alpha, length, strict=True)],
-             "orientation_field": {"model": "bipennate", "alpha_top_rad": float(np.deg2rad(-20.0)),
-                                   "alpha_deep_rad": float(np.deg2rad(20.0)), "aponeurosis_z_m": z_apo,
-                                   "transition_m": 2e-3, "lateral_gradient_rad_per_m": float(np.deg2rad(0.5) / 1e-3)},
-             "fascia_z_m": [5.2e-3, z_apo]}
-    return Scenario("muscle-fibres", probe, seq, c0, window, band, n_frames, {"fibre": pl}, dim=2, seed=seed,
-                    quick=quick, rho0=1060.0, clutter=[(fibres, np.zeros(3))], noise_rms=2e-4,
-                    calibration_noise_rms=2e-5, description=muscle_fibres.__doc__ or "", extra_truth=truth)
+    pl = Placement(
+        calib, np.array([[0.0, 0.0, 15e-3]]), np.array([0.0, 0.0, 15e-3]), kind="fibre", in_medium=False, in_scene=False
+    )
+    truth = {
+        "fibres": [
+            {"position_m": [float(x), 0.0, float(z)], "alpha_rad": float(a), "length_m": float(L)}
+            for x, z, a, L in zip(xc, zc, alpha, length, strict=True)
+        ],
+        "orientation_field": {
+            "model": "bipennate",
+            "alpha_top_rad": float(np.deg2rad(-20.0)),
+            "alpha_deep_rad": float(np.deg2rad(20.0)),
+            "aponeurosis_z_m": z_apo,
+            "transition_m": 2e-3,
+            "lateral_gradient_rad_per_m": float(np.deg2rad(0.5) / 1e-3),
+        },
+        "fascia_z_m": [5.2e-3, z_apo],
+    }
+    return Scenario(
+        "muscle-fibres",
+        probe,
+        seq,
+        c0,
+        window,
+        band,
+        n_frames,
+        {"fibre": pl},
+        dim=2,
+        seed=seed,
+        quick=quick,
+        rho0=1060.0,
+        clutter=[(fibres, np.zeros(3))],
+        noise_rms=2e-4,
+        calibration_noise_rms=2e-5,
+        description=muscle_fibres.__doc__ or "",
+        extra_truth=truth,
+    )
 
 
 @dataclass
@@ -332,11 +460,21 @@ class _BornCloud:
     def diameter(self) -> float:
         return 0.0
 
-    def transfer(self, elements: np.ndarray, sines: np.ndarray, freqs: np.ndarray, c0: float,
-                 position: np.ndarray) -> np.ndarray:
+    def transfer(
+        self, elements: np.ndarray, sines: np.ndarray, freqs: np.ndarray, c0: float, position: np.ndarray
+    ) -> np.ndarray:
         k = 2 * np.pi * np.asarray(freqs, dtype=np.float64) / c0
-        return radiate_points(self.points + np.asarray(position)[None, :], self.amplitudes, elements, sines,
-                              freqs, c0, self.dim, spectral=2j * k, chunk=4096)
+        return radiate_points(
+            self.points + np.asarray(position)[None, :],
+            self.amplitudes,
+            elements,
+            sines,
+            freqs,
+            c0,
+            self.dim,
+            spectral=2j * k,
+            chunk=4096,
+        )
 
 
 SCENARIOS: dict[str, Callable[..., Scenario]] = {

@@ -168,9 +168,17 @@ class Scenario:
             ss = np.random.SeedSequence([self.seed, 1])
             ax, ay = self.probe.aperture
             radius = 0.5 * (np.sqrt(ax * ay) if self.dim == 3 and ay > 0 else ax)
-            self._diffuse = DiffuseBackground(self.layer, self.probe.positions, self.sequence.sines,
-                                              self.window, self.pulse, self.c0, self.dim, radius,
-                                              np.random.default_rng(ss))
+            self._diffuse = DiffuseBackground(
+                self.layer,
+                self.probe.positions,
+                self.sequence.sines,
+                self.window,
+                self.pulse,
+                self.c0,
+                self.dim,
+                radius,
+                np.random.default_rng(ss),
+            )
         return self._diffuse
 
     def _electronic_noise(self, rf: np.ndarray, rms: float, key: tuple[int, ...]) -> None:
@@ -189,17 +197,40 @@ class Scenario:
             r = pl.position(i)
             v = pl.velocity(i, self.frame_rate) if pl.moving else None
             depth = float(r[2] - self.layer.z_surface) if self.layer is not None and pl.in_medium else None
-            targets.append(TargetTruth(name=name, kind=pl.kind, position_m=_vec3(r),
-                                       diameter_m=float(pl.target.diameter), moving=pl.moving,
-                                       velocity_m_s=None if v is None else _vec3(v), depth_below_surface_m=depth))
+            targets.append(
+                TargetTruth(
+                    name=name,
+                    kind=pl.kind,
+                    position_m=_vec3(r),
+                    diameter_m=float(pl.target.diameter),
+                    moving=pl.moving,
+                    velocity_m_s=None if v is None else _vec3(v),
+                    depth_below_surface_m=depth,
+                )
+            )
         medium = None
         if self.layer is not None:
             lay = self.layer
-            medium = MediumTruth(z_surface_m=lay.z_surface, ls_m=lay.ls, la_m=float(lay.la), l_ext_m=lay.l_ext,
-                                 envelope=lay.envelope, frame_displacement_m=lay.frame_displacement,
-                                 interface_reflection=lay.reflection(self.rho0, self.c0))
-        out = Truth(scenario=self.name, quick=self.quick, seed=self.seed, frame_index=i, time_s=i / self.frame_rate,
-                    dim=self.dim, band_hz=(self.pulse.f_min, self.pulse.f_max), targets=targets, medium=medium)
+            medium = MediumTruth(
+                z_surface_m=lay.z_surface,
+                ls_m=lay.ls,
+                la_m=float(lay.la),
+                l_ext_m=lay.l_ext,
+                envelope=lay.envelope,
+                frame_displacement_m=lay.frame_displacement,
+                interface_reflection=lay.reflection(self.rho0, self.c0),
+            )
+        out = Truth(
+            scenario=self.name,
+            quick=self.quick,
+            seed=self.seed,
+            frame_index=i,
+            time_s=i / self.frame_rate,
+            dim=self.dim,
+            band_hz=(self.pulse.f_min, self.pulse.f_max),
+            targets=targets,
+            medium=medium,
+        )
         return out.merged(self.extra_truth) if self.extra_truth else out
 
     def truth(self, i: int) -> dict[str, Any]:
@@ -208,8 +239,17 @@ class Scenario:
 
     # -- frames ---------------------------------------------------------------------------------------
     def _acquisition(self, rf: np.ndarray, i: int, truth: Truth) -> Acquisition:
-        return Acquisition(rf, self.fs, self.t0, self.c0, self.probe, self.sequence, frame_index=i,
-                           timestamp=i / self.frame_rate, truth=truth.to_dict())
+        return Acquisition(
+            rf,
+            self.fs,
+            self.t0,
+            self.c0,
+            self.probe,
+            self.sequence,
+            frame_index=i,
+            timestamp=i / self.frame_rate,
+            truth=truth.to_dict(),
+        )
 
     def _reset(self) -> None:
         self._diffuse = None
@@ -247,8 +287,10 @@ class Scenario:
             return self._target_h(pl, r, pl.in_medium)
         v = pl.velocity(i, self.frame_rate)
         s = self.sequence.sines
-        cols = [self._target_h(pl, r + v * tau, pl.in_medium, s[j:j + 1])
-                for j, tau in enumerate(self.sequence.transmit_times())]
+        cols = [
+            self._target_h(pl, r + v * tau, pl.in_medium, s[j : j + 1])
+            for j, tau in enumerate(self.sequence.transmit_times())
+        ]
         return np.concatenate(cols, axis=2)
 
     def without_targets(self) -> Scenario:
@@ -261,15 +303,24 @@ class Scenario:
         for i in range(self.n_frames):
             yield self.frame(i)
 
-    def fingerprints(self, out_sines: np.ndarray, n_freq: int | None = None,
-                     svd_threshold: float = 0.4) -> dict[str, Fingerprint]:
+    def fingerprints(
+        self, out_sines: np.ndarray, n_freq: int | None = None, svd_threshold: float = 0.4
+    ) -> dict[str, Fingerprint]:
         """Each target's calibration fingerprint (fpcore.from_calibration, paper Methods) on this band,
         gated at its front face (r0 and diameter from the calibration's truth)."""
         out = {}
         for name in self.target_names:
             truth = self.calibration_truth(name)
-            out[name] = from_calibration(self.calibration(name), truth.r0, out_sines, self.band, n_freq,
-                                         diameter=truth.diameter, svd_threshold=svd_threshold, name=name)
+            out[name] = from_calibration(
+                self.calibration(name),
+                truth.r0,
+                out_sines,
+                self.band,
+                n_freq,
+                diameter=truth.diameter,
+                svd_threshold=svd_threshold,
+                name=name,
+            )
         return out
 
     def calibration_truth(self, target_name: str) -> Truth:
@@ -278,9 +329,16 @@ class Scenario:
             raise KeyError(f"target {target_name!r}: expected one of {self.target_names}")
         pl = self.placements[target_name]
         r0, d = _vec3(pl.calibration_position), float(pl.target.diameter)
-        return Truth(scenario=self.name, calibration=True, quick=self.quick, seed=self.seed, r0_m=r0, diameter_m=d,
-                     band_hz=(self.pulse.f_min, self.pulse.f_max),
-                     targets=[TargetTruth(name=target_name, kind=pl.kind, position_m=r0, diameter_m=d, moving=False)])
+        return Truth(
+            scenario=self.name,
+            calibration=True,
+            quick=self.quick,
+            seed=self.seed,
+            r0_m=r0,
+            diameter_m=d,
+            band_hz=(self.pulse.f_min, self.pulse.f_max),
+            targets=[TargetTruth(name=target_name, kind=pl.kind, position_m=r0, diameter_m=d, moving=False)],
+        )
 
     def calibration(self, target_name: str) -> Acquisition:
         """The target alone in water at its calibration position r0 (truth: `calibration_truth`)."""

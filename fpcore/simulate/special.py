@@ -58,8 +58,11 @@ def hankel2_0(z: np.ndarray) -> np.ndarray:
     big = ~small
     if np.any(big):
         zb = z[big]
-        out[big] = (np.sqrt(2.0 / (np.pi * zb)) * np.exp(-1j * (zb - np.pi / 4))
-                    * (1.0 + 1j / (8 * zb) - 9.0 / (128 * zb**2) - 75j / (1024 * zb**3)))
+        out[big] = (
+            np.sqrt(2.0 / (np.pi * zb))
+            * np.exp(-1j * (zb - np.pi / 4))
+            * (1.0 + 1j / (8 * zb) - 9.0 / (128 * zb**2) - 75j / (1024 * zb**3))
+        )
     return out
 
 

@@ -61,8 +61,9 @@ class Target(Protocol):
     @property
     def diameter(self) -> float: ...
 
-    def transfer(self, elements: np.ndarray, sines: np.ndarray, freqs: np.ndarray, c0: float,
-                 position: np.ndarray) -> np.ndarray: ...
+    def transfer(
+        self, elements: np.ndarray, sines: np.ndarray, freqs: np.ndarray, c0: float, position: np.ndarray
+    ) -> np.ndarray: ...
 
 
 def _hat_in(sines: np.ndarray) -> np.ndarray:
@@ -95,10 +96,19 @@ class _PartialWaveTarget(ABC):
             self._cache[key] = self._weights(ka[:, None], n, c0)
         return self._cache[key]
 
-    def transfer(self, elements: np.ndarray, sines: np.ndarray, freqs: np.ndarray, c0: float,
-                 position: np.ndarray) -> np.ndarray:
-        return _series_transfer(self.coefficients(freqs, c0), elements, sines, freqs, c0,
-                                np.asarray(position, dtype=np.float64), self.dim, self.chunk)
+    def transfer(
+        self, elements: np.ndarray, sines: np.ndarray, freqs: np.ndarray, c0: float, position: np.ndarray
+    ) -> np.ndarray:
+        return _series_transfer(
+            self.coefficients(freqs, c0),
+            elements,
+            sines,
+            freqs,
+            c0,
+            np.asarray(position, dtype=np.float64),
+            self.dim,
+            self.chunk,
+        )
 
 
 @dataclass
@@ -127,8 +137,16 @@ class ElasticCylinder(_PartialWaveTarget):
         return np.conj(coef) * (np.where(n == 0, 1.0, 2.0) * (-1j) ** n)[None, :]
 
 
-def _series_transfer(coef: np.ndarray, elements: np.ndarray, sines: np.ndarray, freqs: np.ndarray,
-                     c0: float, rc: np.ndarray, dim: int, chunk: int) -> np.ndarray:
+def _series_transfer(
+    coef: np.ndarray,
+    elements: np.ndarray,
+    sines: np.ndarray,
+    freqs: np.ndarray,
+    c0: float,
+    rc: np.ndarray,
+    dim: int,
+    chunk: int,
+) -> np.ndarray:
     """Σ_n coef_n(f) R_n(k|u − r_c|) Y_n(cos Θ_uθ) times the incident phase at the centre."""
     el = np.asarray(elements, dtype=np.float64)
     freqs = np.asarray(freqs, dtype=np.float64)
@@ -188,8 +206,9 @@ class PointCluster:
         o = np.asarray(self.offsets, dtype=float)
         return float(2 * np.max(np.linalg.norm(o, axis=1))) if o.size else 0.0
 
-    def transfer(self, elements: np.ndarray, sines: np.ndarray, freqs: np.ndarray, c0: float,
-                 position: np.ndarray) -> np.ndarray:
+    def transfer(
+        self, elements: np.ndarray, sines: np.ndarray, freqs: np.ndarray, c0: float, position: np.ndarray
+    ) -> np.ndarray:
         pts = np.asarray(position, dtype=np.float64)[None, :] + np.asarray(self.offsets, dtype=np.float64)
         freqs = np.asarray(freqs, dtype=np.float64)
         k = 2 * np.pi * freqs / c0
@@ -232,8 +251,9 @@ class MirrorSegment:
         ell = (np.arange(n) + 0.5) * step - 0.5 * self.length
         return np.asarray(position, float)[None, :] + ell[:, None] * mirror_direction(self.alpha, self.azimuth), step
 
-    def transfer(self, elements: np.ndarray, sines: np.ndarray, freqs: np.ndarray, c0: float,
-                 position: np.ndarray) -> np.ndarray:
+    def transfer(
+        self, elements: np.ndarray, sines: np.ndarray, freqs: np.ndarray, c0: float, position: np.ndarray
+    ) -> np.ndarray:
         freqs = np.asarray(freqs, dtype=np.float64)
         h = self.spacing if self.spacing is not None else c0 / freqs.max() / 4
         pts, step = self.points(position, h)

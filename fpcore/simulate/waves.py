@@ -170,12 +170,22 @@ def _uniform_step(freqs: np.ndarray) -> float | None:
     return float(df[0]) if np.allclose(df, df[0], rtol=1e-9, atol=0) else None
 
 
-def radiate_points(points: np.ndarray, strength: np.ndarray, elements: np.ndarray, sines: np.ndarray,
-                   freqs: np.ndarray, c0: float, dim: int, *,
-                   excitation: Callable[[int], np.ndarray] | None = None,
-                   att_in: np.ndarray | None = None, att_out: np.ndarray | None = None,
-                   spectral: np.ndarray | None = None, chunk: int = 4096,
-                   out: np.ndarray | None = None) -> np.ndarray:
+def radiate_points(
+    points: np.ndarray,
+    strength: np.ndarray,
+    elements: np.ndarray,
+    sines: np.ndarray,
+    freqs: np.ndarray,
+    c0: float,
+    dim: int,
+    *,
+    excitation: Callable[[int], np.ndarray] | None = None,
+    att_in: np.ndarray | None = None,
+    att_out: np.ndarray | None = None,
+    spectral: np.ndarray | None = None,
+    chunk: int = 4096,
+    out: np.ndarray | None = None,
+) -> np.ndarray:
     """H(f, u, θ) = Σ_j G(u, r_j; k_f) t_j(f) ψ_j(θ, f) for point scatterers (Born or Foldy–Lax).
 
     points (N_s, 3); strength t_j: (N_s,) or (N_s, N_f) complex (scattered field t ψ G, docs/design.md §6);

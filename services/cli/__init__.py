@@ -56,8 +56,13 @@ def join_negative_values(argv: list[str]) -> list[str]:
     while i < len(argv):
         a = argv[i]
         nxt = argv[i + 1] if i + 1 < len(argv) else ""
-        if (a.startswith("--") and "=" not in a and len(nxt) > 1 and nxt[0] == "-"
-                and (nxt[1].isdigit() or (nxt[1] == "." and nxt[2:3].isdigit()))):
+        if (
+            a.startswith("--")
+            and "=" not in a
+            and len(nxt) > 1
+            and nxt[0] == "-"
+            and (nxt[1].isdigit() or (nxt[1] == "." and nxt[2:3].isdigit()))
+        ):
             out.append(f"{a}={nxt}")
             i += 2
             continue

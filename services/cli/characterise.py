@@ -25,8 +25,9 @@ def _angles(text: str) -> np.ndarray:
     try:
         a, b, step = (float(p) for p in parts)
     except ValueError:
-        raise UnitError(f"--angles: expected start:stop:step in degrees, e.g. --angles=-40:40:5, "
-                        f"got {text!r}") from None
+        raise UnitError(
+            f"--angles: expected start:stop:step in degrees, e.g. --angles=-40:40:5, got {text!r}"
+        ) from None
     if step <= 0 or b < a:
         raise UnitError(f"--angles: expected start <= stop and step > 0, got {text!r}")
     return np.deg2rad(np.arange(a, b + 1e-9, step))
@@ -44,13 +45,19 @@ def _lengths(text: str) -> np.ndarray:
 
 
 def add_characterise_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("characterise", help="orientation/length maps from a dictionary of mirror fingerprints",
-                       description="Per pixel, the mirror orientation α and length L that maximise γ "
-                                   "(paper Fig. 4). Lengths in metres unless a unit is given.")
+    p = sub.add_parser(
+        "characterise",
+        help="orientation/length maps from a dictionary of mirror fingerprints",
+        description="Per pixel, the mirror orientation α and length L that maximise γ "
+        "(paper Fig. 4). Lengths in metres unless a unit is given.",
+    )
     p.add_argument("data", help="UFF file")
     p.add_argument("--dictionary", choices=["mirror"], default="mirror", help="fingerprint family (mirror)")
-    p.add_argument("--angles", default="-45:45:3", help="orientations start:stop:step in degrees (default -45:45:3;"
-                                                        " write --angles=-40:40:5)")
+    p.add_argument(
+        "--angles",
+        default="-45:45:3",
+        help="orientations start:stop:step in degrees (default -45:45:3; write --angles=-40:40:5)",
+    )
     p.add_argument("--lengths", default="0.5mm:4mm:8", help="lengths start:stop:count (default 0.5mm:4mm:8)")
     p.add_argument("--frame", type=int, default=0, help="frame index in the file (default 0)")
     p.add_argument("--dataset", help="dataset name inside the UFF file when there are several")
@@ -60,8 +67,12 @@ def add_characterise_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--y", dest="y_range", help=argparse.SUPPRESS)
     p.add_argument("--z", dest="z_range", help="depth range, e.g. 5mm:25mm")
     p.add_argument("--spacing", help="grid spacing (default λ_min/3)")
-    p.add_argument("--threshold", type=float, default=0.25,
-                   help="pixels with γ_max ≥ threshold × its 99th percentile are reported (default 0.25)")
+    p.add_argument(
+        "--threshold",
+        type=float,
+        default=0.25,
+        help="pixels with γ_max ≥ threshold × its 99th percentile are reported (default 0.25)",
+    )
     p.add_argument("--json", help="summary JSON (SI units)")
     p.add_argument("--npz", help="maps: gamma_max, alpha_rad, length_m, x_m, z_m")
     p.add_argument("--png", help="vector-field figure over the confocal image")
@@ -92,10 +103,15 @@ def run_characterise(args: argparse.Namespace) -> int:
         res = dic.evaluate(imager, pw, progress=lambda k, n: progress.update(task, completed=k))
     alpha_map, length_map = res.state_map("alpha_rad"), res.state_map("length_m")
     mask = res.gamma_max >= args.threshold * np.percentile(res.gamma_max, 99)
-    summary = {"data": str(args.data), "frame_index": acq.frame_index, "band_hz": list(band),
-               "n_states": len(dic), "pixels_reported": int(mask.sum()),
-               "alpha_rad_median": float(np.median(alpha_map[mask])) if mask.any() else None,
-               "length_m_median": float(np.median(length_map[mask])) if mask.any() else None}
+    summary = {
+        "data": str(args.data),
+        "frame_index": acq.frame_index,
+        "band_hz": list(band),
+        "n_states": len(dic),
+        "pixels_reported": int(mask.sum()),
+        "alpha_rad_median": float(np.median(alpha_map[mask])) if mask.any() else None,
+        "length_m_median": float(np.median(length_map[mask])) if mask.any() else None,
+    }
     fibres = acq.ground_truth.fibres
     if fibres:
         errs = []
@@ -110,12 +126,15 @@ def run_characterise(args: argparse.Namespace) -> int:
             summary["truth_alpha_error_rad_median"] = float(np.median(errs))
             summary["truth_fibres_compared"] = len(errs)
             console.print(f"orientation error against {len(errs)} fibres: median {np.rad2deg(np.median(errs)):.1f}°")
-    console.print(f"{int(mask.sum())} pixels above threshold; median α = "
-                  f"{np.rad2deg(summary['alpha_rad_median'] or 0):.1f}°, median L = "
-                  f"{(summary['length_m_median'] or 0) * 1e3:.2f} mm")
+    console.print(
+        f"{int(mask.sum())} pixels above threshold; median α = "
+        f"{np.rad2deg(summary['alpha_rad_median'] or 0):.1f}°, median L = "
+        f"{(summary['length_m_median'] or 0) * 1e3:.2f} mm"
+    )
     if args.npz:
-        np.savez_compressed(args.npz, gamma_max=res.gamma_max, alpha_rad=alpha_map, length_m=length_map,
-                            x_m=grid.x, z_m=grid.z)
+        np.savez_compressed(
+            args.npz, gamma_max=res.gamma_max, alpha_rad=alpha_map, length_m=length_map, x_m=grid.x, z_m=grid.z
+        )
         console.print(f"wrote {args.npz}")
     if args.json:
         Path(args.json).write_text(json.dumps(summary, indent=2))
@@ -126,8 +145,9 @@ def run_characterise(args: argparse.Namespace) -> int:
     return 0
 
 
-def _vector_figure(path: str, grid, confocal: np.ndarray, alpha: np.ndarray, length: np.ndarray,
-                   mask: np.ndarray) -> None:
+def _vector_figure(
+    path: str, grid, confocal: np.ndarray, alpha: np.ndarray, length: np.ndarray, mask: np.ndarray
+) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -135,16 +155,37 @@ def _vector_figure(path: str, grid, confocal: np.ndarray, alpha: np.ndarray, len
 
     ext = [grid.x[0] * 1e3, grid.x[-1] * 1e3, grid.z[-1] * 1e3, grid.z[0] * 1e3]
     fig, ax = plt.subplots(figsize=(8, 6), constrained_layout=True)
-    ax.imshow(10 * np.log10(confocal.T / confocal.max() + 1e-12), extent=ext, cmap="gray", vmin=-45, vmax=0, alpha=0.7,
-              aspect="equal")
+    ax.imshow(
+        10 * np.log10(confocal.T / confocal.max() + 1e-12),
+        extent=ext,
+        cmap="gray",
+        vmin=-45,
+        vmax=0,
+        alpha=0.7,
+        aspect="equal",
+    )
     step = max(1, int(round(0.6e-3 / grid.spacing[0])))
     sub = (slice(None, None, step), slice(None, None, step))
     xx, zz = np.meshgrid(grid.x * 1e3, grid.z * 1e3, indexing="ij")
     m = mask[sub]
     a = alpha[sub][m]
-    q = ax.quiver(xx[sub][m], zz[sub][m], np.cos(a), np.sin(a), np.rad2deg(a), cmap="plasma",
-                  angles="xy", scale_units="xy", scale=1 / 0.5, headwidth=0, headlength=0, headaxislength=0,
-                  pivot="middle", width=0.004, alpha=0.9)
+    q = ax.quiver(
+        xx[sub][m],
+        zz[sub][m],
+        np.cos(a),
+        np.sin(a),
+        np.rad2deg(a),
+        cmap="plasma",
+        angles="xy",
+        scale_units="xy",
+        scale=1 / 0.5,
+        headwidth=0,
+        headlength=0,
+        headaxislength=0,
+        pivot="middle",
+        width=0.004,
+        alpha=0.9,
+    )
     fig.colorbar(q, ax=ax, label="α_opt (deg)")
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("z (mm)")

@@ -18,9 +18,12 @@ __all__ = ["add_demo_parser", "cmd_demo"]
 
 
 def add_demo_parser(sub: argparse._SubParsersAction) -> None:
-    demo = sub.add_parser("demo", help="run the main job on the built-in simulated scenario",
-                          description="Publisher, processor and recorder on loopback zenoh with the simulated "
-                                      "sinking-sphere scenario: live table, MCAP recording, summary, PNG.")
+    demo = sub.add_parser(
+        "demo",
+        help="run the main job on the built-in simulated scenario",
+        description="Publisher, processor and recorder on loopback zenoh with the simulated "
+        "sinking-sphere scenario: live table, MCAP recording, summary, PNG.",
+    )
     demo.add_argument("--scenario", default="sinking-sphere", help="simulator scenario (default sinking-sphere)")
     demo.add_argument("--frames", type=int, default=None, help="number of frames (default: the scenario's)")
     demo.add_argument("--full", action="store_true", help="full-size scenario (default: quick)")
@@ -55,8 +58,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
     n_total = args.frames or source.n_frames
 
     def table() -> Table:
-        t = Table(title=f"fp demo — {args.scenario} ({'full' if args.full else 'quick'}): "
-                        f"{len({r[0] for r in rows})}/{n_total} frames")
+        t = Table(
+            title=f"fp demo — {args.scenario} ({'full' if args.full else 'quick'}): "
+            f"{len({r[0] for r in rows})}/{n_total} frames"
+        )
         for col in ("frame", "target", "position (mm)", "truth (mm)", "error (mm)", "C_γ", "PFA", "track"):
             t.add_column(col, justify="right")
         for r in rows[-12:]:
@@ -74,26 +79,44 @@ def cmd_demo(args: argparse.Namespace) -> int:
             pos = np.array(d["position_m"])
             tr = truths.get(d["fingerprint"])
             err = f"{np.linalg.norm(pos - tr) * 1e3:.2f}" if tr is not None else ""
-            rows.append((str(res["frame_index"]), d["fingerprint"], _mm(pos), _mm(tr) if tr is not None else "",
-                         err, f"{d['contrast_c_gamma']:.1f}", f"{d['pfa']:.1e}", str(tracks.get(d["fingerprint"], ""))))
+            rows.append(
+                (
+                    str(res["frame_index"]),
+                    d["fingerprint"],
+                    _mm(pos),
+                    _mm(tr) if tr is not None else "",
+                    err,
+                    f"{d['contrast_c_gamma']:.1f}",
+                    f"{d['pfa']:.1e}",
+                    str(tracks.get(d["fingerprint"], "")),
+                )
+            )
         last.update(res)
-        history.append({"frame_index": res["frame_index"], "tracks": res["tracks"],
-                        "truth": res["truth"].get("targets", [])})
+        history.append(
+            {"frame_index": res["frame_index"], "tracks": res["tracks"], "truth": res["truth"].get("targets", [])}
+        )
 
-    console.print(f"[bold]fingerprint demo[/]: {args.scenario} on loopback zenoh — publisher → processor → "
-                  f"recorder; default grid (the record's whole time window); detections at calibrated PFA < "
-                  f"{cfg.max_pfa:g}; writing to {args.out}")
+    console.print(
+        f"[bold]fingerprint demo[/]: {args.scenario} on loopback zenoh — publisher → processor → "
+        f"recorder; default grid (the record's whole time window); detections at calibrated PFA < "
+        f"{cfg.max_pfa:g}; writing to {args.out}"
+    )
     with Live(Group(table()), console=console, refresh_per_second=4, get_renderable=lambda: Group(table())):
-        summary = run_pipeline(source, rig=args.rig, out_dir=args.out, n_frames=args.frames,
-                               progress_callback=on_frame, processor=cfg)
+        summary = run_pipeline(
+            source, rig=args.rig, out_dir=args.out, n_frames=args.frames, progress_callback=on_frame, processor=cfg
+        )
     errors = [float(r[4]) for r in rows if r[4]]
     rec = summary.get("recording") or {}
-    console.print(f"{summary['frames_processed']} frames processed at {summary['frame_rate_hz']:.1f} frames/s, "
-                  f"latency median {summary['latency_ms']['median']:.0f} ms; detection error RMS "
-                  f"{np.sqrt(np.mean(np.square(errors))) if errors else float('nan'):.2f} mm, "
-                  f"max {max(errors) if errors else float('nan'):.2f} mm")
-    console.print(f"recording: {', '.join(map(str, rec.get('files', []))) or 'none'}; summary: "
-                  f"{Path(args.out) / 'pipeline_summary.json'}")
+    console.print(
+        f"{summary['frames_processed']} frames processed at {summary['frame_rate_hz']:.1f} frames/s, "
+        f"latency median {summary['latency_ms']['median']:.0f} ms; detection error RMS "
+        f"{np.sqrt(np.mean(np.square(errors))) if errors else float('nan'):.2f} mm, "
+        f"max {max(errors) if errors else float('nan'):.2f} mm"
+    )
+    console.print(
+        f"recording: {', '.join(map(str, rec.get('files', []))) or 'none'}; summary: "
+        f"{Path(args.out) / 'pipeline_summary.json'}"
+    )
     det = next((d for d in last.get("detections", []) if d["fingerprint"] in last.get("gamma", {})), None)
     if det is not None:
         name = det["fingerprint"]
@@ -102,10 +125,18 @@ def cmd_demo(args: argparse.Namespace) -> int:
         target = next((t for t in targets if t.name == name), TargetTruth())
         truth = target.position if target.position_m is not None else None
         png = Path(args.out) / "demo_gamma_over_confocal.png"
-        gamma_over_confocal(png, last["grid"], last["image"], gamma, np.array(det["position_m"]), truth=truth,
-                            title=f"frame {last['frame_index']}, {name}: C_γ = {det['contrast_c_gamma']:.1f}, "
-                                  f"PFA = {det['pfa']:.1e}", name=name, diameter=target.diameter_m,
-                            c_gamma=det["contrast_c_gamma"])
+        gamma_over_confocal(
+            png,
+            last["grid"],
+            last["image"],
+            gamma,
+            np.array(det["position_m"]),
+            truth=truth,
+            title=f"frame {last['frame_index']}, {name}: C_γ = {det['contrast_c_gamma']:.1f}, PFA = {det['pfa']:.1e}",
+            name=name,
+            diameter=target.diameter_m,
+            c_gamma=det["contrast_c_gamma"],
+        )
         console.print(f"figure: {png}")
     if history and last.get("image") is not None:
         from services.viewing.figures import tracks_over_confocal

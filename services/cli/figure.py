@@ -21,15 +21,22 @@ def run_figure(args: argparse.Namespace) -> int:
 
 def add_figure_parser(sub: Any) -> argparse.ArgumentParser:
     """Register `fp figure`."""
-    p = sub.add_parser("figure", help="PNG of γ over the confocal image for one recorded frame",
-                       description="Sections of one frame's confocal image (dB) and of its γ-maps (dB) over "
-                                   "it, as in the paper's Figure 2: scale bars, detections, sphere outlines "
-                                   "when the fingerprint's diameter is known.")
+    p = sub.add_parser(
+        "figure",
+        help="PNG of γ over the confocal image for one recorded frame",
+        description="Sections of one frame's confocal image (dB) and of its γ-maps (dB) over "
+        "it, as in the paper's Figure 2: scale bars, detections, sphere outlines "
+        "when the fingerprint's diameter is known.",
+    )
     p.add_argument("recording", help="MCAP file written by `fp record`/`fp demo`")
     p.add_argument("--frame", type=int, required=True, help="frame index")
     p.add_argument("--png", required=True, help="output PNG")
     p.add_argument("--fingerprint", default=None, help="only this fingerprint's γ-map (default: all of the frame's)")
-    p.add_argument("--threshold", type=float, default=0.6,
-                   help="colour γ ≥ threshold·max, i.e. from 20·log10(threshold) dB to 0 dB (default 0.6: −4.4 dB)")
+    p.add_argument(
+        "--threshold",
+        type=float,
+        default=0.6,
+        help="colour γ ≥ threshold·max, i.e. from 20·log10(threshold) dB to 0 dB (default 0.6: −4.4 dB)",
+    )
     p.set_defaults(func=run_figure)
     return p

@@ -16,17 +16,31 @@ __all__ = ["add_imaging_arguments", "grid_ranges"]
 
 def add_imaging_arguments(p: argparse.ArgumentParser | Any, peaks_help: str = "peaks reported per frame") -> None:
     """--band, --n-freq, --x/--y/--z, --spacing, --n-out, --svd-threshold, --targets."""
-    p.add_argument("--band", help="frequency band f_min:f_max, e.g. 1.8MHz:2.6MHz (default: the frame's "
-                                  "simulated band, else the probe's -6 dB band)")
-    p.add_argument("--n-freq", type=int, default=None,
-                   help="frequencies kept in the band; it sets the delay window (n−1)/bandwidth, so keep "
-                        "it ≥ bandwidth × record length (default: every bin of the 2× zero-padded record)")
-    p.add_argument("--x", dest="x_range", help="lateral range of the grid, e.g. --x=-8mm:8mm "
-                   "(default: the transmit fan over the aperture)")
+    p.add_argument(
+        "--band",
+        help="frequency band f_min:f_max, e.g. 1.8MHz:2.6MHz (default: the frame's "
+        "simulated band, else the probe's -6 dB band)",
+    )
+    p.add_argument(
+        "--n-freq",
+        type=int,
+        default=None,
+        help="frequencies kept in the band; it sets the delay window (n−1)/bandwidth, so keep "
+        "it ≥ bandwidth × record length (default: every bin of the 2× zero-padded record)",
+    )
+    p.add_argument(
+        "--x",
+        dest="x_range",
+        help="lateral range of the grid, e.g. --x=-8mm:8mm (default: the transmit fan over the aperture)",
+    )
     p.add_argument("--y", dest="y_range", help="elevation range (3D), e.g. --y=-8mm:8mm (default: as --x)")
-    p.add_argument("--z", dest="z_range", help="depth range, e.g. 10mm:40mm (default: the record's time window; "
-                                               "start below strong interfaces, where γ's normalisation favours "
-                                               "the most energetic depths)")
+    p.add_argument(
+        "--z",
+        dest="z_range",
+        help="depth range, e.g. 10mm:40mm (default: the record's time window; "
+        "start below strong interfaces, where γ's normalisation favours "
+        "the most energetic depths)",
+    )
     p.add_argument("--spacing", help="grid spacing (default λ_min/3 in 2D, λ_min/2 in 3D)")
     p.add_argument("--n-out", type=int, help="output directions per lateral axis (default: elements per axis)")
     p.add_argument("--svd-threshold", type=float, default=0.4, help="kept singular values σ_p ≥ t σ_1 (default 0.4)")
@@ -36,7 +50,9 @@ def add_imaging_arguments(p: argparse.ArgumentParser | Any, peaks_help: str = "p
 def grid_ranges(args: argparse.Namespace) -> dict[str, Any]:
     """The parsed --x/--y/--z/--spacing as keyword arguments of `fpcore.Grid.for_acquisition`."""
     y = getattr(args, "y_range", None)
-    return {"x_range": parse_range(args.x_range, "--x") if args.x_range else None,
-            "y_range": parse_range(y, "--y") if y else None,
-            "z_range": parse_range(args.z_range, "--z") if args.z_range else None,
-            "spacing": parse_length(args.spacing, "--spacing") if args.spacing else None}
+    return {
+        "x_range": parse_range(args.x_range, "--x") if args.x_range else None,
+        "y_range": parse_range(y, "--y") if y else None,
+        "z_range": parse_range(args.z_range, "--z") if args.z_range else None,
+        "spacing": parse_length(args.spacing, "--spacing") if args.spacing else None,
+    }

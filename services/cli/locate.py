@@ -28,35 +28,60 @@ __all__ = ["add_locate_parser", "run_locate"]
 
 
 def add_locate_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("locate", help="locate a target in every frame of a UFF file",
-                       description="Per frame: detected position(s), γ_max, contrasts C_γ and C, PFA and "
-                                   "Cramér–Rao precision. Lengths are metres unless a unit is given (25mm).")
+    p = sub.add_parser(
+        "locate",
+        help="locate a target in every frame of a UFF file",
+        description="Per frame: detected position(s), γ_max, contrasts C_γ and C, PFA and "
+        "Cramér–Rao precision. Lengths are metres unless a unit is given (25mm).",
+    )
     p.add_argument("data", help="UFF file with the plane-wave frames")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--calibration", help="UFF file: the target alone in water at r0 (fingerprint source)")
     src.add_argument("--model", help="numerical fingerprint: 'point' or 'mirror:L=2mm,alpha=10' (alpha in degrees)")
-    p.add_argument("--r0", help="calibration target position X,Z[,Y] (default: the position the calibration file "
-                                "records); refused if it differs from that by more than a resolution cell")
-    p.add_argument("--force", action="store_true", help="proceed (with a warning) when --r0 disagrees with the "
-                                                        "calibration file's recorded position")
-    p.add_argument("--diameter", help="target size for the time gate, e.g. 10mm (default: from the calibration's "
-                                      "truth, else measured from the calibration: the echo's first arrival)")
-    p.add_argument("--gate", choices=("front", "none"), default="front",
-                   help="calibration time gate: 'front' (paper: after the front face's echo) or 'none'")
-    p.add_argument("--max-pfa", type=float, default=DEFAULT_MAX_PFA,
-                   help=f"report a detection only below this calibrated false-alarm probability "
-                        f"(default {DEFAULT_MAX_PFA:g})")
+    p.add_argument(
+        "--r0",
+        help="calibration target position X,Z[,Y] (default: the position the calibration file "
+        "records); refused if it differs from that by more than a resolution cell",
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="proceed (with a warning) when --r0 disagrees with the calibration file's recorded position",
+    )
+    p.add_argument(
+        "--diameter",
+        help="target size for the time gate, e.g. 10mm (default: from the calibration's "
+        "truth, else measured from the calibration: the echo's first arrival)",
+    )
+    p.add_argument(
+        "--gate",
+        choices=("front", "none"),
+        default="front",
+        help="calibration time gate: 'front' (paper: after the front face's echo) or 'none'",
+    )
+    p.add_argument(
+        "--max-pfa",
+        type=float,
+        default=DEFAULT_MAX_PFA,
+        help=f"report a detection only below this calibrated false-alarm probability (default {DEFAULT_MAX_PFA:g})",
+    )
     p.add_argument("--dataset", help="dataset name inside the UFF file(s) when there are several")
     add_imaging_arguments(p)
     p.add_argument("--json", help="write the results as JSON (SI units)")
     p.add_argument("--png", help="write a PNG of γ over the confocal image (last frame)")
     p.add_argument("--frames", help="frame indices to process, e.g. 0:10 (default: all)")
-    p.add_argument("--velocity", metavar="VX,VZ[,VY]",
-                   help="target velocity in m/s: use the motion-aware fingerprint (each transmit sees the target "
-                        "where it is when that transmit fires; needs the data's PRF)")
-    p.add_argument("--skip-border", action="store_true",
-                   help="heuristic: skip maxima closer than the diffraction resolution to the grid's border "
-                        "(off by default: the local significance does not need it)")
+    p.add_argument(
+        "--velocity",
+        metavar="VX,VZ[,VY]",
+        help="target velocity in m/s: use the motion-aware fingerprint (each transmit sees the target "
+        "where it is when that transmit fires; needs the data's PRF)",
+    )
+    p.add_argument(
+        "--skip-border",
+        action="store_true",
+        help="heuristic: skip maxima closer than the diffraction resolution to the grid's border "
+        "(off by default: the local significance does not need it)",
+    )
     p.set_defaults(func=run_locate)
 
 
@@ -128,18 +153,27 @@ def run_locate(args: argparse.Namespace) -> int:
             warning = check_r0(r0, cal, resolution(grid, first, band), force=args.force)
             if warning:
                 console.print(f"[yellow]warning:[/yellow] {warning}")
-        spec = FingerprintSpec(calibration_name(args.calibration, cal), calibration=cal, r0=tuple(r0),
-                               diameter=diameter,
-                               gate=args.gate == "front")
+        spec = FingerprintSpec(
+            calibration_name(args.calibration, cal),
+            calibration=cal,
+            r0=tuple(r0),
+            diameter=diameter,
+            gate=args.gate == "front",
+        )
     else:
         spec = FingerprintSpec(args.model.partition(":")[0], model=args.model, r0=(0.0, 0.0, 0.0))
     fp = build_fingerprint(spec, first, None, imager, band, args.n_freq, args.svd_threshold)
     if args.calibration:
-        how = ("no gate" if args.gate == "none" else
-               f"gate after the front face, d = {fp.state['diameter_m'] * 1e3:.1f} mm"
-               + (" (measured: first arrival)" if diameter is None else ""))
-        console.print(f"fingerprint from {args.calibration}: r0 = {np.round(r0 * 1e3, 2)} mm, {how}, "
-                      f"N_S = {fp.n_s:.1f}, N_T = {fp.n_t:.1f}, G ≈ {fp.n_s * fp.n_t:.0f}")
+        how = (
+            "no gate"
+            if args.gate == "none"
+            else f"gate after the front face, d = {fp.state['diameter_m'] * 1e3:.1f} mm"
+            + (" (measured: first arrival)" if diameter is None else "")
+        )
+        console.print(
+            f"fingerprint from {args.calibration}: r0 = {np.round(r0 * 1e3, 2)} mm, {how}, "
+            f"N_S = {fp.n_s:.1f}, N_T = {fp.n_t:.1f}, G ≈ {fp.n_s * fp.n_t:.0f}"
+        )
     if args.velocity:
         fp = _moving(fp, args.velocity, first)
     console.print(f"{len(frames)} frame(s), band {band[0] / 1e6:.2f}–{band[1] / 1e6:.2f} MHz, grid {grid.shape}")
@@ -154,39 +188,74 @@ def run_locate(args: argparse.Namespace) -> int:
             pw = imager.plane_waves(acq)
             gamma = imager.gamma(pw, fp)
             nm = null_for(level, gamma, grid, acq, pw, fp, band)
-            dets = find_targets(gamma, grid, acq, band, fp.name, args.targets, interior=args.skip_border, null=nm,
-                                max_pfa=args.max_pfa)
+            dets = find_targets(
+                gamma, grid, acq, band, fp.name, args.targets, interior=args.skip_border, null=nm, max_pfa=args.max_pfa
+            )
             truths = truth_positions(acq.ground_truth)
             row = {"frame_index": acq.frame_index, "timestamp_s": acq.timestamp, "detections": []}
             for d in dets:
                 pos = np.array(d.position_m)
                 err = truth_error(pos, truths)  # the nearest target, whatever its name
-                row["detections"].append({"fingerprint": d.fingerprint, "position_m": d.position_m,
-                                          "gamma_max": d.gamma_max, "c_gamma": d.c_gamma, "c_pfa": d.c_pfa,
-                                          "c_local": d.c_local, "pfa": d.pfa, "precision_m": d.precision_m,
-                                          "truth_error_m": err})
-                table.add_row(str(acq.frame_index), ", ".join(f"{v * 1e3:.2f}" for v in pos), f"{d.gamma_max:.3f}",
-                              f"{d.c_gamma:.2f}", f"{d.c_pfa:.1f}", f"{d.pfa:.1e}",
-                              f"{d.precision_m[0] * 1e3:.2f}, {d.precision_m[1] * 1e3:.3f}",
-                              "" if err is None else f"{err * 1e3:.2f}")
+                row["detections"].append(
+                    {
+                        "fingerprint": d.fingerprint,
+                        "position_m": d.position_m,
+                        "gamma_max": d.gamma_max,
+                        "c_gamma": d.c_gamma,
+                        "c_pfa": d.c_pfa,
+                        "c_local": d.c_local,
+                        "pfa": d.pfa,
+                        "precision_m": d.precision_m,
+                        "truth_error_m": err,
+                    }
+                )
+                table.add_row(
+                    str(acq.frame_index),
+                    ", ".join(f"{v * 1e3:.2f}" for v in pos),
+                    f"{d.gamma_max:.3f}",
+                    f"{d.c_gamma:.2f}",
+                    f"{d.c_pfa:.1f}",
+                    f"{d.pfa:.1e}",
+                    f"{d.precision_m[0] * 1e3:.2f}, {d.precision_m[1] * 1e3:.3f}",
+                    "" if err is None else f"{err * 1e3:.2f}",
+                )
             if not dets:
                 table.add_row(str(acq.frame_index), f"no detection (PFA < {args.max_pfa:g})", *[""] * 6)
             results.append(row)
             progress.advance(task)
     console.print(table)
     if args.json:
-        doc = {"data": str(args.data), "fingerprint": {"name": fp.name, "provenance": fp.provenance,
-                                                        "r0_m": fp.r0.tolist(), "n_s": fp.n_s, "n_t": fp.n_t},
-               "band_hz": list(band), "grid_spacing_m": list(grid.spacing), "max_pfa": args.max_pfa,
-               "frames": results}
+        doc = {
+            "data": str(args.data),
+            "fingerprint": {
+                "name": fp.name,
+                "provenance": fp.provenance,
+                "r0_m": fp.r0.tolist(),
+                "n_s": fp.n_s,
+                "n_t": fp.n_t,
+            },
+            "band_hz": list(band),
+            "grid_spacing_m": list(grid.spacing),
+            "max_pfa": args.max_pfa,
+            "frames": results,
+        }
         Path(args.json).write_text(json.dumps(doc, indent=2))
         console.print(f"wrote {args.json}")
     if args.png and dets:
         near = np.array(dets[0].position_m)  # the truth of the target this detection belongs to
         truth = min((t for _, t in truths), key=lambda t: float(np.linalg.norm(t - near))) if truths else None
-        gamma_over_confocal(args.png, grid, imager.confocal(pw), gamma, np.array(dets[0].position_m), truth=truth,
-                            title=f"{Path(args.data).name} frame {acq.frame_index}: C_γ = {dets[0].c_gamma:.1f}, "
-                                  f"PFA = {dets[0].pfa:.1e}", name=fp.name, diameter=fp.state.get("diameter_m") or None,
-                            c_gamma=dets[0].c_gamma)
+        gamma_over_confocal(
+            args.png,
+            grid,
+            imager.confocal(pw),
+            gamma,
+            np.array(dets[0].position_m),
+            truth=truth,
+            title=f"{Path(args.data).name} frame {acq.frame_index}: C_γ = {dets[0].c_gamma:.1f}, "
+            f"PFA = {dets[0].pfa:.1e}",
+            name=fp.name,
+            diameter=fp.state.get("diameter_m") or None,
+            c_gamma=dets[0].c_gamma,
+        )
         console.print(f"wrote {args.png}")
     return 0

@@ -27,41 +27,73 @@ log = logging.getLogger("fp.processor")
 
 
 def add_process_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("process", help="run the processor node (γ-maps, detections, tracks)",
-                       description="Processor node: subscribes to fp/<rig>/rf, publishes gamma, image, detections, "
-                                   "tracks, status and errors; dictionary queryable at fp/<rig>/dictionary/**. "
-                                   "Lengths are metres unless a unit is given (25mm).")
+    p = sub.add_parser(
+        "process",
+        help="run the processor node (γ-maps, detections, tracks)",
+        description="Processor node: subscribes to fp/<rig>/rf, publishes gamma, image, detections, "
+        "tracks, status and errors; dictionary queryable at fp/<rig>/dictionary/**. "
+        "Lengths are metres unless a unit is given (25mm).",
+    )
     p.add_argument("--rig", default="demo", help="rig name in the key expressions fp/<rig>/… (default demo)")
     p.add_argument("--name", default="processor", help="node name (default processor)")
     src = p.add_argument_group("fingerprint dictionary (at least one, or add at run time)")
-    src.add_argument("--calibration", action="append", default=[], metavar="FILE",
-                     help="UFF calibration (target alone at r0), repeatable; entry named after the target the file "
-                          "records (else the file)")
+    src.add_argument(
+        "--calibration",
+        action="append",
+        default=[],
+        metavar="FILE",
+        help="UFF calibration (target alone at r0), repeatable; entry named after the target the file "
+        "records (else the file)",
+    )
     src.add_argument("--r0", help="calibration target position X,Z[,Y] (default: from the calibration's truth)")
     src.add_argument("--diameter", help="target size for the time gate, e.g. 10mm (default: from the truth)")
     src.add_argument("--dataset", help="dataset name inside the calibration UFF")
-    src.add_argument("--model", action="append", default=[], metavar="SPEC",
-                     help="numerical fingerprint 'point' or 'mirror:L=2mm,alpha=10', repeatable")
+    src.add_argument(
+        "--model",
+        action="append",
+        default=[],
+        metavar="SPEC",
+        help="numerical fingerprint 'point' or 'mirror:L=2mm,alpha=10', repeatable",
+    )
     src.add_argument("--scenario", help="calibrations of a simulator scenario's targets (e.g. sinking-sphere)")
     src.add_argument("--full", action="store_true", help="full-size scenario (default: quick)")
     img = p.add_argument_group("imaging")
     add_imaging_arguments(img, peaks_help="peaks reported per fingerprint")
-    img.add_argument("--max-pfa", type=float, default=DEFAULT_MAX_PFA,
-                     help=f"publish a detection only below this calibrated false-alarm probability "
-                          f"(default {DEFAULT_MAX_PFA:g})")
-    img.add_argument("--skip-border", action="store_true",
-                     help="heuristic: skip maxima within the diffraction resolution of the grid's border")
+    img.add_argument(
+        "--max-pfa",
+        type=float,
+        default=DEFAULT_MAX_PFA,
+        help=f"publish a detection only below this calibrated false-alarm probability (default {DEFAULT_MAX_PFA:g})",
+    )
+    img.add_argument(
+        "--skip-border",
+        action="store_true",
+        help="heuristic: skip maxima within the diffraction resolution of the grid's border",
+    )
     img.add_argument("--no-image", action="store_true", help="do not publish the confocal image")
     img.add_argument("--no-track", action="store_true", help="do not run the tracker")
-    img.add_argument("--track-integrate", type=int, default=1, metavar="K",
-                     help="tracker: search the mean of the last K γ-maps (fog decorrelates, a slow target "
-                          "persists; the track lags by v(K−1)Δt/2; default 1)")
+    img.add_argument(
+        "--track-integrate",
+        type=int,
+        default=1,
+        metavar="K",
+        help="tracker: search the mean of the last K γ-maps (fog decorrelates, a slow target "
+        "persists; the track lags by v(K−1)Δt/2; default 1)",
+    )
     node = p.add_argument_group("node")
-    node.add_argument("--queue", choices=("newest", "fifo"), default="newest",
-                      help="newest: live, keep the newest frame, count drops; fifo: replay, block, drop nothing")
+    node.add_argument(
+        "--queue",
+        choices=("newest", "fifo"),
+        default="newest",
+        help="newest: live, keep the newest frame, count drops; fifo: replay, block, drop nothing",
+    )
     node.add_argument("--fifo-depth", type=int, default=8, help="FIFO depth in fifo mode (default 8)")
-    node.add_argument("--max-frame-bytes", type=int, default=DEFAULT_MAX_BYTES,
-                      help=f"refuse larger frames (default {DEFAULT_MAX_BYTES})")
+    node.add_argument(
+        "--max-frame-bytes",
+        type=int,
+        default=DEFAULT_MAX_BYTES,
+        help=f"refuse larger frames (default {DEFAULT_MAX_BYTES})",
+    )
     node.add_argument("--status-period", type=float, default=1.0, help="seconds between Status messages")
     node.add_argument("--duration", type=float, help="stop after this many seconds (default: run until signalled)")
     add_bus_arguments(p, listen="tcp/127.0.0.1:7447", connect=None)
@@ -103,12 +135,24 @@ def specs_from_args(args: argparse.Namespace) -> list[FingerprintSpec]:
 
 def config_from_args(args: argparse.Namespace) -> ProcessorConfig:
     return ProcessorConfig(
-        rig=args.rig, name=args.name, queue=args.queue, fifo_depth=args.fifo_depth,
-        band=parse_band(args.band) if args.band else None, n_freq=args.n_freq, svd_threshold=args.svd_threshold,
-        **grid_ranges(args), n_out=args.n_out,
-        n_peaks=args.targets, max_pfa=args.max_pfa, interior=args.skip_border, max_frame_bytes=args.max_frame_bytes,
+        rig=args.rig,
+        name=args.name,
+        queue=args.queue,
+        fifo_depth=args.fifo_depth,
+        band=parse_band(args.band) if args.band else None,
+        n_freq=args.n_freq,
+        svd_threshold=args.svd_threshold,
+        **grid_ranges(args),
+        n_out=args.n_out,
+        n_peaks=args.targets,
+        max_pfa=args.max_pfa,
+        interior=args.skip_border,
+        max_frame_bytes=args.max_frame_bytes,
         publish_image=not args.no_image,
-        track=not args.no_track, track_integrate=args.track_integrate, status_period=args.status_period)
+        track=not args.no_track,
+        track_integrate=args.track_integrate,
+        status_period=args.status_period,
+    )
 
 
 def run_process(args: argparse.Namespace) -> int:
@@ -122,6 +166,5 @@ def run_process(args: argparse.Namespace) -> int:
             log.info("processor on %s (%s queue), dictionary %s", node.keys.rf, cfg.queue, node.dictionary)
             print(json.dumps({"ready": True, "rig": cfg.rig, "dictionary": node.dictionary}), flush=True)
             wait_until(stop, args.duration)
-        print(json.dumps({"stopped": True, **{k: v for k, v in node.stats().items() if k != "dictionary"}}),
-              flush=True)
+        print(json.dumps({"stopped": True, **{k: v for k, v in node.stats().items() if k != "dictionary"}}), flush=True)
     return 0

@@ -29,9 +29,12 @@ __all__ = ["add_publish_parser", "run_publish", "source_from_args"]
 
 
 def add_publish_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("publish", help="publish RF frames on fp/<rig>/rf",
-                       description="Publisher: frames from a simulator scenario, a UFF file, an MCAP recording or "
-                                   "the live ingest key fp/<rig>/ingest, on fp/<rig>/rf.")
+    p = sub.add_parser(
+        "publish",
+        help="publish RF frames on fp/<rig>/rf",
+        description="Publisher: frames from a simulator scenario, a UFF file, an MCAP recording or "
+        "the live ingest key fp/<rig>/ingest, on fp/<rig>/rf.",
+    )
     p.add_argument("--rig", default="demo", help="rig name (default demo)")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--scenario", help="simulator scenario (sinking-sphere, lesion-marker, muscle-fibres)")
@@ -45,14 +48,20 @@ def add_publish_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--frames", type=int, help="publish at most this many frames")
     p.add_argument("--repeat", type=int, default=1, help="replay a finite source this many times (default 1)")
     pace = p.add_argument_group("pacing")
-    pace.add_argument("--pace", choices=PACES, help="original timing (default), fixed rate, ack (as fast as the "
-                                                    "processor takes) or none")
+    pace.add_argument(
+        "--pace",
+        choices=PACES,
+        help="original timing (default), fixed rate, ack (as fast as the processor takes) or none",
+    )
     pace.add_argument("--rate", type=float, help="frames per second (implies --pace rate)")
     pace.add_argument("--fast", action="store_true", help="as fast as the consumer takes (same as --pace ack)")
     pace.add_argument("--speed", type=float, default=1.0, help="original timing × speed (default 1)")
     pace.add_argument("--window", type=int, default=2, help="frames in flight with --pace ack (default 2)")
-    pace.add_argument("--wait-for", default="processor",
-                      help="nodes to wait for before publishing: processor, recorder, both comma-separated, or none")
+    pace.add_argument(
+        "--wait-for",
+        default="processor",
+        help="nodes to wait for before publishing: processor, recorder, both comma-separated, or none",
+    )
     pace.add_argument("--wait-timeout", type=float, default=10.0, help="seconds to wait for them (default 10)")
     pace.add_argument("--ack-timeout", type=float, default=30.0, help="give up on a frame's ack after (default 30)")
     p.add_argument("--max-frame-bytes", type=int, default=DEFAULT_MAX_BYTES, help="ingest: refuse larger frames")
@@ -62,8 +71,9 @@ def add_publish_parser(sub: argparse._SubParsersAction) -> None:
 
 def source_from_args(args: argparse.Namespace) -> Source:
     if args.scenario:
-        return SimulatorSource(args.scenario, n_frames=args.frames, quick=not args.full, seed=args.seed,
-                               repeat=args.repeat)
+        return SimulatorSource(
+            args.scenario, n_frames=args.frames, quick=not args.full, seed=args.seed, repeat=args.repeat
+        )
     if args.uff:
         return UFFSource(args.uff, args.dataset, repeat=args.repeat)
     if args.mcap:
@@ -79,9 +89,20 @@ def run_publish(args: argparse.Namespace) -> int:
     source = source_from_args(args)
     stop = stop_on_signals()
     with open_session(bus_from_args(args)) as session:
-        pub = Publisher(session, args.rig, source, pace=pace, rate=args.rate, speed=args.speed, window=args.window,
-                        wait_for=wait_for, wait_timeout=args.wait_timeout, ack_timeout=args.ack_timeout,
-                        max_frame_bytes=args.max_frame_bytes, limit=args.frames)
+        pub = Publisher(
+            session,
+            args.rig,
+            source,
+            pace=pace,
+            rate=args.rate,
+            speed=args.speed,
+            window=args.window,
+            wait_for=wait_for,
+            wait_timeout=args.wait_timeout,
+            ack_timeout=args.ack_timeout,
+            max_frame_bytes=args.max_frame_bytes,
+            limit=args.frames,
+        )
         if isinstance(source, IngestSource):
             source.bind(session)
             print(json.dumps({"ready": True, "ingest": keys(args.rig).ingest}), flush=True)

@@ -18,13 +18,15 @@ __all__ = ["add_record_parser", "add_recover_parser", "run_record", "run_recover
 
 
 def add_record_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("record", help="record every fp/** message to MCAP",
-                       description="Recorder: every message on fp/** (or --rig's) to MCAP, one channel per key, "
-                                   "the wire bytes as they travelled; flushed every --flush-interval.")
+    p = sub.add_parser(
+        "record",
+        help="record every fp/** message to MCAP",
+        description="Recorder: every message on fp/** (or --rig's) to MCAP, one channel per key, "
+        "the wire bytes as they travelled; flushed every --flush-interval.",
+    )
     p.add_argument("-o", "--output", help="MCAP file (default recordings/<rig or all>-<UTC time>.mcap)")
     p.add_argument("--rig", help="record only fp/<rig>/** (default: every rig, fp/**)")
-    p.add_argument("--compression", choices=tuple(COMPRESSION), default="none", help="chunk compression "
-                                                                                     "(default none)")
+    p.add_argument("--compression", choices=tuple(COMPRESSION), default="none", help="chunk compression (default none)")
     p.add_argument("--flush-interval", type=float, default=0.5, help="seconds between flushes (default 0.5)")
     p.add_argument("--max-bytes", type=int, help="rotate when a file reaches this size")
     p.add_argument("--max-seconds", type=float, help="rotate when a file is this old")
@@ -34,9 +36,12 @@ def add_record_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def add_recover_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("recover", help="salvage an MCAP file whose writer was killed",
-                       description="Copies every message of the complete chunks of BROKEN into a complete file "
-                                   "and prints a JSON report (messages kept, per key).")
+    p = sub.add_parser(
+        "recover",
+        help="salvage an MCAP file whose writer was killed",
+        description="Copies every message of the complete chunks of BROKEN into a complete file "
+        "and prints a JSON report (messages kept, per key).",
+    )
     p.add_argument("broken", help="the damaged MCAP file")
     p.add_argument("-o", "--output", help="output file (default BROKEN.recovered.mcap)")
     p.set_defaults(func=run_recover)
@@ -49,8 +54,15 @@ def run_record(args: argparse.Namespace) -> int:
     out = Path(args.output or f"recordings/{args.rig or 'all'}-{stamp}.mcap")
     stop = stop_on_signals()
     with open_session(bus_from_args(args)) as session:
-        rec = Recorder(session, out, rig=args.rig, compression=args.compression, flush_interval=args.flush_interval,
-                       max_bytes=args.max_bytes, max_seconds=args.max_seconds)
+        rec = Recorder(
+            session,
+            out,
+            rig=args.rig,
+            compression=args.compression,
+            flush_interval=args.flush_interval,
+            max_bytes=args.max_bytes,
+            max_seconds=args.max_seconds,
+        )
         with rec:
             print(json.dumps({"ready": True, "key_expr": rec.key_expr, "output": str(out)}), flush=True)
             wait_until(stop, args.duration)

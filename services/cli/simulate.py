@@ -17,8 +17,11 @@ __all__ = ["add_simulate_parser", "run_simulate"]
 def add_simulate_parser(sub: argparse._SubParsersAction) -> None:
     from fpcore.simulate import SCENARIOS
 
-    p = sub.add_parser("simulate", help="write a simulated scenario (frames, calibrations, truth) as UFF",
-                       description="Simulated plane-wave acquisitions with ground truth, as USTB UFF files.")
+    p = sub.add_parser(
+        "simulate",
+        help="write a simulated scenario (frames, calibrations, truth) as UFF",
+        description="Simulated plane-wave acquisitions with ground truth, as USTB UFF files.",
+    )
     p.add_argument("scenario", choices=sorted(SCENARIOS), help="scenario name")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--quick", action="store_true", help="the small variant that runs in seconds")
@@ -41,8 +44,10 @@ def run_simulate(args: argparse.Namespace) -> int:
         raise ValueError(f"--frames: expected 1 … {sc.n_frames} for {args.scenario}, got {n}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    console.print(f"{args.scenario}{' (quick)' if args.quick else ''}: {sc.probe.n_elements} elements, "
-                  f"{sc.sequence.n_waves} plane waves, {n} frames of {sc.frame_nbytes / 1e6:.1f} MB")
+    console.print(
+        f"{args.scenario}{' (quick)' if args.quick else ''}: {sc.probe.n_elements} elements, "
+        f"{sc.sequence.n_waves} plane waves, {n} frames of {sc.frame_nbytes / 1e6:.1f} MB"
+    )
     t = time.perf_counter()
     frames = []
     with Progress(console=console, transient=True) as progress:
@@ -58,10 +63,17 @@ def run_simulate(args: argparse.Namespace) -> int:
         write_uff(out / f"calibration_{name}.uff", cal)
         if i == 0:
             write_uff(out / "calibration.uff", cal)
-    truth = {"scenario": args.scenario, "quick": args.quick, "seed": args.seed, "band_hz": list(sc.band),
-             "frames": [f.truth for f in frames],
-             "calibrations": {name: sc.calibration(name).truth for name in sc.target_names}}
+    truth = {
+        "scenario": args.scenario,
+        "quick": args.quick,
+        "seed": args.seed,
+        "band_hz": list(sc.band),
+        "frames": [f.truth for f in frames],
+        "calibrations": {name: sc.calibration(name).truth for name in sc.target_names},
+    }
     (out / "truth.json").write_text(json.dumps(truth, indent=2))
-    console.print(f"wrote {n} frames, {len(sc.target_names)} calibration(s) and truth.json to {out} "
-                  f"({time.perf_counter() - t:.1f} s)")
+    console.print(
+        f"wrote {n} frames, {len(sc.target_names)} calibration(s) and truth.json to {out} "
+        f"({time.perf_counter() - t:.1f} s)"
+    )
     return 0

@@ -30,9 +30,12 @@ __all__ = ["add_track_parser", "run_track"]
 
 
 def add_track_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("track", help="track targets through the frames of a UFF file (offline processor)",
-                       description="Per frame: detections and tracks (the processor's pipeline and tracker). "
-                                   "Lengths are metres unless a unit is given (25mm).")
+    p = sub.add_parser(
+        "track",
+        help="track targets through the frames of a UFF file (offline processor)",
+        description="Per frame: detections and tracks (the processor's pipeline and tracker). "
+        "Lengths are metres unless a unit is given (25mm).",
+    )
     p.add_argument("data", help="UFF file with the plane-wave frames (in time order)")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--calibration", help="UFF file: the target alone in water at r0 (fingerprint source)")
@@ -43,8 +46,12 @@ def add_track_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--gate", choices=("front", "none"), default="front", help="calibration time gate")
     p.add_argument("--dataset", help="dataset name inside the UFF file(s) when there are several")
     add_imaging_arguments(p, peaks_help="targets (tracks) per fingerprint")
-    p.add_argument("--max-pfa", type=float, default=DEFAULT_MAX_PFA,
-                   help=f"report a detection only below this calibrated PFA (default {DEFAULT_MAX_PFA:g})")
+    p.add_argument(
+        "--max-pfa",
+        type=float,
+        default=DEFAULT_MAX_PFA,
+        help=f"report a detection only below this calibrated PFA (default {DEFAULT_MAX_PFA:g})",
+    )
     p.add_argument("--json", help="write detections and tracks per frame as JSON (SI units)")
     p.add_argument("--png", help="write a PNG of the tracks against the truth over the confocal image")
     p.set_defaults(func=run_track)
@@ -52,9 +59,17 @@ def add_track_parser(sub: argparse._SubParsersAction) -> None:
 
 def _track_row(t: Any, truths: list[tuple[str | None, np.ndarray]]) -> dict[str, Any]:
     err = truth_error(np.asarray(t.position_m, float), truths, t.fingerprint) if truths else None
-    return {"id": t.track_id, "fingerprint": t.fingerprint, "position_m": list(t.position_m),
-            "velocity_m_s": list(t.velocity_m_s), "pfa": float(t.pfa), "status": t.status,
-            "confidence": float(t.confidence), "measured": bool(t.measured), "truth_error_m": err}
+    return {
+        "id": t.track_id,
+        "fingerprint": t.fingerprint,
+        "position_m": list(t.position_m),
+        "velocity_m_s": list(t.velocity_m_s),
+        "pfa": float(t.pfa),
+        "status": t.status,
+        "confidence": float(t.confidence),
+        "measured": bool(t.measured),
+        "truth_error_m": err,
+    }
 
 
 def run_track(args: argparse.Namespace) -> int:
@@ -71,16 +86,29 @@ def run_track(args: argparse.Namespace) -> int:
     first = frames[0]
     band = parse_band(args.band) if args.band else first.default_band()
     r = grid_ranges(args)
-    cfg = PipelineConfig(band=band, n_freq=args.n_freq, svd_threshold=args.svd_threshold, n_out=args.n_out,
-                         n_peaks=args.targets, max_pfa=args.max_pfa, x_range=r["x_range"], y_range=r["y_range"],
-                         z_range=r["z_range"], spacing=r["spacing"])
+    cfg = PipelineConfig(
+        band=band,
+        n_freq=args.n_freq,
+        svd_threshold=args.svd_threshold,
+        n_out=args.n_out,
+        n_peaks=args.targets,
+        max_pfa=args.max_pfa,
+        x_range=r["x_range"],
+        y_range=r["y_range"],
+        z_range=r["z_range"],
+        spacing=r["spacing"],
+    )
     if args.calibration:
         cal = read_uff(args.calibration, args.dataset)[0]
         check_calibration(cal, first)
         r0, diameter = _r0(args, cal)
-        spec = FingerprintSpec(calibration_name(args.calibration, cal), calibration=cal, r0=tuple(r0),
-                               diameter=diameter,
-                               gate=args.gate == "front")
+        spec = FingerprintSpec(
+            calibration_name(args.calibration, cal),
+            calibration=cal,
+            r0=tuple(r0),
+            diameter=diameter,
+            gate=args.gate == "front",
+        )
     else:
         spec = FingerprintSpec(args.model.partition(":")[0], model=args.model)
     pipe = Pipeline(cfg, [spec])
@@ -93,8 +121,10 @@ def run_track(args: argparse.Namespace) -> int:
     entry = pipe.entry(spec.name) or {}
     if entry.get("error"):
         raise ValueError(f"fingerprint {spec.name!r}: {entry['error']}")
-    console.print(f"{len(frames)} frame(s), band {band[0] / 1e6:.2f}–{band[1] / 1e6:.2f} MHz, grid {grid.shape}, "
-                  f"detections at PFA < {args.max_pfa:g}")
+    console.print(
+        f"{len(frames)} frame(s), band {band[0] / 1e6:.2f}–{band[1] / 1e6:.2f} MHz, grid {grid.shape}, "
+        f"detections at PFA < {args.max_pfa:g}"
+    )
     table = Table(title=f"fp track {args.data}")
     for col in ("frame", "detection (mm)", "PFA", "track", "status", "track position (mm)", "track PFA", "error (mm)"):
         table.add_column(col, justify="right")
@@ -105,15 +135,32 @@ def run_track(args: argparse.Namespace) -> int:
         task = progress.add_task("tracking", total=len(frames))
         for acq in frames:
             res = pipe.process(acq)
-            truths = truth_positions(acq.truth)
-            dets = [{"fingerprint": d.fingerprint, "position_m": d.position_m, "gamma_max": d.gamma_max,
-                     "c_gamma": d.c_gamma, "c_pfa": d.c_pfa, "c_local": d.c_local, "pfa": d.pfa,
-                     "precision_m": d.precision_m, "truth_error_m": err} for d, err in res.detections]
+            truths = truth_positions(acq.ground_truth)
+            dets = [
+                {
+                    "fingerprint": d.fingerprint,
+                    "position_m": d.position_m,
+                    "gamma_max": d.gamma_max,
+                    "c_gamma": d.c_gamma,
+                    "c_pfa": d.c_pfa,
+                    "c_local": d.c_local,
+                    "pfa": d.pfa,
+                    "precision_m": d.precision_m,
+                    "truth_error_m": err,
+                }
+                for d, err in res.detections
+            ]
             tracks = [_track_row(t, truths) for t in res.tracks]
-            rows.append({"frame_index": acq.frame_index, "timestamp_s": acq.timestamp, "detections": dets,
-                         "tracks": tracks})
-            history.append({"frame_index": acq.frame_index, "tracks": tracks,
-                            "truth": [{"name": n, "position_m": p.tolist()} for n, p in truths if n]})
+            rows.append(
+                {"frame_index": acq.frame_index, "timestamp_s": acq.timestamp, "detections": dets, "tracks": tracks}
+            )
+            history.append(
+                {
+                    "frame_index": acq.frame_index,
+                    "tracks": tracks,
+                    "truth": [{"name": n, "position_m": p.tolist()} for n, p in truths if n],
+                }
+            )
             if res.image is not None:
                 conf_sum = res.image if conf_sum is None else conf_sum + res.image
             det_txt = ", ".join(f"{v * 1e3:.2f}" for v in dets[0]["position_m"]) if dets else "no detection"
@@ -122,15 +169,27 @@ def run_track(args: argparse.Namespace) -> int:
                 table.add_row(str(acq.frame_index), det_txt, det_pfa, "", "no track", "", "", "")
             for k, t in enumerate(tracks):
                 err = t["truth_error_m"]
-                table.add_row(str(acq.frame_index) if k == 0 else "", det_txt if k == 0 else "",
-                              det_pfa if k == 0 else "", str(t["id"]), t["status"],
-                              ", ".join(f"{v * 1e3:.2f}" for v in t["position_m"]), f"{t['pfa']:.1e}",
-                              "" if err is None else f"{err * 1e3:.2f}")
+                table.add_row(
+                    str(acq.frame_index) if k == 0 else "",
+                    det_txt if k == 0 else "",
+                    det_pfa if k == 0 else "",
+                    str(t["id"]),
+                    t["status"],
+                    ", ".join(f"{v * 1e3:.2f}" for v in t["position_m"]),
+                    f"{t['pfa']:.1e}",
+                    "" if err is None else f"{err * 1e3:.2f}",
+                )
             progress.advance(task)
     console.print(table)
     if args.json:
-        doc = {"data": str(args.data), "fingerprint": spec.name, "band_hz": list(band), "max_pfa": args.max_pfa,
-               "grid_spacing_m": list(grid.spacing), "frames": rows}
+        doc = {
+            "data": str(args.data),
+            "fingerprint": spec.name,
+            "band_hz": list(band),
+            "max_pfa": args.max_pfa,
+            "grid_spacing_m": list(grid.spacing),
+            "frames": rows,
+        }
         Path(args.json).write_text(json.dumps(doc, indent=2))
         console.print(f"wrote {args.json}")
     if args.png and conf_sum is not None:

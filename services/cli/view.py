@@ -38,21 +38,32 @@ def run_view(args: argparse.Namespace) -> int:
         try:
             if viewer is not None:
                 print(f"Rerun web viewer (loopback only): {viewer.url}  (Ctrl-C stops)", flush=True)
-            out = live_to_rrd(bus_from_args(args), args.rig, rrd, duration=args.duration, stop=stop,
-                              threshold=args.threshold, grpc_url=viewer.grpc_url if viewer else None)
+            out = live_to_rrd(
+                bus_from_args(args),
+                args.rig,
+                rrd,
+                duration=args.duration,
+                stop=stop,
+                threshold=args.threshold,
+                grpc_url=viewer.grpc_url if viewer else None,
+            )
         finally:
             if viewer is not None:
                 viewer.stop()
-        print(f"{out['rrd']}: {len(out['frames'])} frames, {out['messages']} messages "
-              f"({out['undecodable']} undecodable, {out['dropped']} dropped)")
+        print(
+            f"{out['rrd']}: {len(out['frames'])} frames, {out['messages']} messages "
+            f"({out['undecodable']} undecodable, {out['dropped']} dropped)"
+        )
         return 0
     if not args.recording:
         raise ValueError("recording: give an MCAP file, or --live to follow the bus")
     rrd = Path(args.rrd) if args.rrd else Path(args.recording).with_suffix(".rrd")
     out = to_rrd(args.recording, rrd, threshold=args.threshold)
-    print(f"{out['rrd']}: {len(out['frames'])} frames, {out['messages']} messages "
-          f"({out['undecodable']} undecodable), fingerprints {', '.join(out['fingerprints']) or 'none'}",
-          flush=True)
+    print(
+        f"{out['rrd']}: {len(out['frames'])} frames, {out['messages']} messages "
+        f"({out['undecodable']} undecodable), fingerprints {', '.join(out['fingerprints']) or 'none'}",
+        flush=True,
+    )
     if args.serve:
         stop = stop_on_signals()
         with serve_loopback(rrd, port=args.port, grpc_port=args.grpc_port) as viewer:
@@ -63,26 +74,46 @@ def run_view(args: argparse.Namespace) -> int:
 
 def add_view_parser(sub: Any) -> argparse.ArgumentParser:
     """Register `fp view`."""
-    p = sub.add_parser("view", help="convert an MCAP recording to a Rerun .rrd (and serve it: --serve)",
-                       description="Log a recording's γ-maps, confocal images, detections, tracks and time "
-                                   "series to Rerun natively, with a default blueprint; --serve shows it in "
-                                   "the Rerun web viewer on 127.0.0.1.")
+    p = sub.add_parser(
+        "view",
+        help="convert an MCAP recording to a Rerun .rrd (and serve it: --serve)",
+        description="Log a recording's γ-maps, confocal images, detections, tracks and time "
+        "series to Rerun natively, with a default blueprint; --serve shows it in "
+        "the Rerun web viewer on 127.0.0.1.",
+    )
     p.add_argument("recording", nargs="?", help="MCAP file written by `fp record`/`fp demo`")
     p.add_argument("--rrd", default=None, help="output .rrd (default: the recording with .rrd, or live-<rig>.rrd)")
     p.add_argument("--live", action="store_true", help="follow the zenoh bus instead of a file (Ctrl-C stops)")
     p.add_argument("--rig", default="demo", help="rig to follow with --live (default demo)")
-    p.add_argument("--duration", type=float, default=None,
-                   help="with --live or --serve: stop after this many seconds (default: at Ctrl-C/SIGTERM)")
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        help="with --live or --serve: stop after this many seconds (default: at Ctrl-C/SIGTERM)",
+    )
     p.add_argument("--threshold", type=float, default=0.6, help="show γ ≥ threshold·max (default 0.6)")
-    g = p.add_argument_group("web viewer (--serve)",
-                             "Bound to 127.0.0.1 only, not configurable: the recording must not be readable "
-                             "from the network. From another machine: ssh -L PORT:127.0.0.1:PORT for both ports.")
-    g.add_argument("--serve", action="store_true",
-                   help="serve the .rrd (or the live stream) in the Rerun web viewer on 127.0.0.1 and print the URL")
-    g.add_argument("--port", type=int, default=DEFAULT_WEB_PORT,
-                   help=f"HTTP port of the web viewer page (default {DEFAULT_WEB_PORT})")
-    g.add_argument("--grpc-port", type=int, default=DEFAULT_GRPC_PORT,
-                   help=f"port of the gRPC proxy the page reads the data from (default {DEFAULT_GRPC_PORT})")
+    g = p.add_argument_group(
+        "web viewer (--serve)",
+        "Bound to 127.0.0.1 only, not configurable: the recording must not be readable "
+        "from the network. From another machine: ssh -L PORT:127.0.0.1:PORT for both ports.",
+    )
+    g.add_argument(
+        "--serve",
+        action="store_true",
+        help="serve the .rrd (or the live stream) in the Rerun web viewer on 127.0.0.1 and print the URL",
+    )
+    g.add_argument(
+        "--port",
+        type=int,
+        default=DEFAULT_WEB_PORT,
+        help=f"HTTP port of the web viewer page (default {DEFAULT_WEB_PORT})",
+    )
+    g.add_argument(
+        "--grpc-port",
+        type=int,
+        default=DEFAULT_GRPC_PORT,
+        help=f"port of the gRPC proxy the page reads the data from (default {DEFAULT_GRPC_PORT})",
+    )
     from services.bus import DEFAULT_HUB, EPHEMERAL, add_bus_arguments
 
     add_bus_arguments(p, listen=EPHEMERAL, connect=DEFAULT_HUB)

@@ -20,6 +20,7 @@ from services.topics import Keys
 
 __all__ = ["Node"]
 
+
 class Node:
     """Base of the publisher, processor and recorder nodes."""
 
@@ -84,8 +85,9 @@ class Node:
 
     def report(self, rep: ErrorReport) -> None:
         """Publish an ErrorReport on ``fp/<rig>/errors`` (logged, never raised)."""
-        self.log.warning("%s refused %s (frame %s): %s: %s", self.name, rep.key, rep.frame_index, rep.field,
-                         rep.problem)
+        self.log.warning(
+            "%s refused %s (frame %s): %s: %s", self.name, rep.key, rep.frame_index, rep.field, rep.problem
+        )
         try:
             self.publish("errors", rep)
         except Exception as exc:  # pragma: no cover - only when the session is going down

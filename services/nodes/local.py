@@ -28,11 +28,23 @@ from services.topics import Keys
 __all__ = ["run_pipeline"]
 
 
-def run_pipeline(source: Source | str, rig: str = "demo", out_dir: str | Path = "out/pipeline",
-                 n_frames: int | None = None, progress_callback: Callable[[dict[str, Any]], None] | None = None,
-                 *, fingerprints: list[FingerprintSpec] | None = None, processor: ProcessorConfig | None = None,
-                 record: bool = True, pace: str = "ack", window: int = 2, quick: bool = True, shm: str = "auto",
-                 warmup: int = 0, timeout: float = 600.0) -> dict[str, Any]:
+def run_pipeline(
+    source: Source | str,
+    rig: str = "demo",
+    out_dir: str | Path = "out/pipeline",
+    n_frames: int | None = None,
+    progress_callback: Callable[[dict[str, Any]], None] | None = None,
+    *,
+    fingerprints: list[FingerprintSpec] | None = None,
+    processor: ProcessorConfig | None = None,
+    record: bool = True,
+    pace: str = "ack",
+    window: int = 2,
+    quick: bool = True,
+    shm: str = "auto",
+    warmup: int = 0,
+    timeout: float = 600.0,
+) -> dict[str, Any]:
     """Publisher + processor + recorder in one process, over zenoh on loopback; returns when every frame
     is processed (and recorded). ``fp demo`` and the benchmark call it.
 
@@ -62,8 +74,15 @@ def run_pipeline(source: Source | str, rig: str = "demo", out_dir: str | Path = 
     nodes: list[Any] = []
 
     def on_result(res: dict[str, Any]) -> None:
-        rows.append({"frame_index": res["frame_index"], "timestamp": res["timestamp"],
-                     "latency_ms": res["latency_ms"], "detections": res["detections"], "tracks": res["tracks"]})
+        rows.append(
+            {
+                "frame_index": res["frame_index"],
+                "timestamp": res["timestamp"],
+                "latency_ms": res["latency_ms"],
+                "detections": res["detections"],
+                "tracks": res["tracks"],
+            }
+        )
         if len(rows) > warmup:
             latencies.append(res["latency_ms"])
         if len(rows) == warmup:
@@ -85,16 +104,29 @@ def run_pipeline(source: Source | str, rig: str = "demo", out_dir: str | Path = 
             stamp = time.strftime("%Y%m%dT%H%M%S")
             rec = stack.enter_context(Recorder(s_rec, out / f"{rig}-{stamp}.mcap", rig=rig))
         s_pub = stack.enter_context(open_session(BusConfig(listen=[EPHEMERAL], connect=[hub], shm=shm)))
-        pub = Publisher(s_pub, rig, src, pace=pace, window=window, limit=n_frames, ack_timeout=timeout,
-                        wait_for=("processor", "recorder") if record else ("processor",), wait_timeout=30.0)
+        pub = Publisher(
+            s_pub,
+            rig,
+            src,
+            pace=pace,
+            window=window,
+            limit=n_frames,
+            ack_timeout=timeout,
+            wait_for=("processor", "recorder") if record else ("processor",),
+            wait_timeout=30.0,
+        )
         pub_summary = pub.run()
         deadline = time.monotonic() + 10.0  # the last acknowledged frame finishes its bookkeeping
         expected = pub.published - node.rejected
-        while time.monotonic() < deadline and (node.frames_processed + node.failed < expected
-                                               or len(rows) < node.frames_processed):
+        while time.monotonic() < deadline and (
+            node.frames_processed + node.failed < expected or len(rows) < node.frames_processed
+        ):
             time.sleep(0.02)
-        while rec is not None and time.monotonic() < deadline and (
-                rec.counts[Keys(rig).detections] < node.frames_processed or rec.received < pub.published):
+        while (
+            rec is not None
+            and time.monotonic() < deadline
+            and (rec.counts[Keys(rig).detections] < node.frames_processed or rec.received < pub.published)
+        ):
             time.sleep(0.05)
         stats = node.stats()
     wall = time.time() - t0
@@ -106,16 +138,27 @@ def run_pipeline(source: Source | str, rig: str = "demo", out_dir: str | Path = 
     total = sum(stages.values()) or 1.0
     lat = np.asarray(latencies, float)
     summary: dict[str, Any] = {
-        "rig": rig, "frames_published": pub_summary["published"], "frames_processed": stats["frames_processed"],
-        "dropped": stats["dropped"], "rejected": stats["rejected"], "failed": stats["failed"],
-        "wall_s": wall, "publish_wall_s": pub_summary["wall_s"],
-        "frame_rate_hz": rate, "warmup_frames": warmup,
-        "latency_ms": {"median": float(np.median(lat)) if lat.size else None,
-                       "p95": float(np.percentile(lat, 95)) if lat.size else None},
-        "stage_mean_s": stages, "stage_share": {k: v / total for k, v in stages.items()},
-        "setup_s": stats["setup_s"], "dictionary": stats["dictionary"],
+        "rig": rig,
+        "frames_published": pub_summary["published"],
+        "frames_processed": stats["frames_processed"],
+        "dropped": stats["dropped"],
+        "rejected": stats["rejected"],
+        "failed": stats["failed"],
+        "wall_s": wall,
+        "publish_wall_s": pub_summary["wall_s"],
+        "frame_rate_hz": rate,
+        "warmup_frames": warmup,
+        "latency_ms": {
+            "median": float(np.median(lat)) if lat.size else None,
+            "p95": float(np.percentile(lat, 95)) if lat.size else None,
+        },
+        "stage_mean_s": stages,
+        "stage_share": {k: v / total for k, v in stages.items()},
+        "setup_s": stats["setup_s"],
+        "dictionary": stats["dictionary"],
         "recording": rec.summary() if rec is not None else None,
-        "frames": sorted(rows, key=lambda r: r["frame_index"]), "out_dir": str(out),
+        "frames": sorted(rows, key=lambda r: r["frame_index"]),
+        "out_dir": str(out),
     }
     (out / "pipeline_summary.json").write_text(json.dumps(summary, indent=2))
     return summary

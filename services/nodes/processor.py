@@ -93,15 +93,20 @@ class Processor(Node):
 
     role = "processor"
 
-    def __init__(self, session: zenoh.Session, config: ProcessorConfig,
-                 fingerprints: list[FingerprintSpec] | tuple[FingerprintSpec, ...] = (),
-                 on_result: Callable[[dict[str, Any]], None] | None = None) -> None:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        config: ProcessorConfig,
+        fingerprints: list[FingerprintSpec] | tuple[FingerprintSpec, ...] = (),
+        on_result: Callable[[dict[str, Any]], None] | None = None,
+    ) -> None:
         super().__init__(session, config.rig, config.name)
         self.pipeline = Pipeline(config, fingerprints)
         self.on_result = on_result
         self._stop = threading.Event()
         self._slot: LatestSlot[_Job] | FifoSlot[_Job] = (
-            LatestSlot() if config.queue == "newest" else FifoSlot(config.fifo_depth))
+            LatestSlot() if config.queue == "newest" else FifoSlot(config.fifo_depth)
+        )
         self._server = DictionaryServer(session, self.keys, self, name=f"{self.name}-control")
         self._threads: list[threading.Thread] = []
         self.frames_processed = 0
@@ -124,8 +129,10 @@ class Processor(Node):
             except OSError:  # no /proc (not Linux): leave BLAS as it is
                 pass
         self.declare_publishers("gamma", "image", "detections", "tracks", "status", "errors")
-        self._threads = [threading.Thread(target=self._work, name=f"{self.name}-worker", daemon=True),
-                         threading.Thread(target=self._status_loop, name=f"{self.name}-status", daemon=True)]
+        self._threads = [
+            threading.Thread(target=self._work, name=f"{self.name}-worker", daemon=True),
+            threading.Thread(target=self._status_loop, name=f"{self.name}-status", daemon=True),
+        ]
         self.pipeline.warm_up()  # on the calibration's geometry, before announcing the node
         for t in self._threads:
             t.start()
@@ -165,12 +172,21 @@ class Processor(Node):
         """Counters, latency (ms), per-stage time (s, summed over the ``stats_frames`` frames since start
         or the last :meth:`reset_stats`) and the one-off set-up time."""
         lat = np.asarray(self._latency, float)
-        return {"frames_processed": self.frames_processed, "stats_frames": self.stats_frames,
-                "dropped": self.dropped, "rejected": self.rejected,
-                "failed": self.failed, "frame_rate_hz": self._rate(),
-                "latency_ms": {"median": float(np.median(lat)) if lat.size else None,
-                               "p95": float(np.percentile(lat, 95)) if lat.size else None},
-                "stages_s": dict(self.stage_s), "setup_s": self.pipeline.setup_s, "dictionary": self.dictionary}
+        return {
+            "frames_processed": self.frames_processed,
+            "stats_frames": self.stats_frames,
+            "dropped": self.dropped,
+            "rejected": self.rejected,
+            "failed": self.failed,
+            "frame_rate_hz": self._rate(),
+            "latency_ms": {
+                "median": float(np.median(lat)) if lat.size else None,
+                "p95": float(np.percentile(lat, 95)) if lat.size else None,
+            },
+            "stages_s": dict(self.stage_s),
+            "setup_s": self.pipeline.setup_s,
+            "dictionary": self.dictionary,
+        }
 
     def _rate(self) -> float:
         d = self._done_times
@@ -244,8 +260,15 @@ class Processor(Node):
                 self.failed += 1
                 field_ = "geometry" if isinstance(exc, ValueError) else "processing"
                 log.exception("frame %s failed", job.msg.frame_index)
-                self.report(ErrorReport(frame_index=job.msg.frame_index, key=job.key, field=field_,
-                                        problem=f"{type(exc).__name__}: {exc}"[:2000], node=self.name))
+                self.report(
+                    ErrorReport(
+                        frame_index=job.msg.frame_index,
+                        key=job.key,
+                        field=field_,
+                        problem=f"{type(exc).__name__}: {exc}"[:2000],
+                        node=self.name,
+                    )
+                )
 
     def _process(self, job: _Job) -> None:
         msg = job.msg
@@ -272,19 +295,36 @@ class Processor(Node):
         self.frames_processed += 1
         self.stats_frames += 1
         if self.on_result is not None:
-            self.on_result({"frame_index": fi, "timestamp": ts, "latency_ms": latency_ms,
-                            "detections": [d.model_dump(mode="json") for d in out["detections"].detections],
-                            "tracks": [t.model_dump(mode="json") for t in out["tracks"].tracks],
-                            "gamma": res.gammas, "image": res.image, "grid": res.grid, "truth": msg.truth})
+            self.on_result(
+                {
+                    "frame_index": fi,
+                    "timestamp": ts,
+                    "latency_ms": latency_ms,
+                    "detections": [d.model_dump(mode="json") for d in out["detections"].detections],
+                    "tracks": [t.model_dump(mode="json") for t in out["tracks"].tracks],
+                    "gamma": res.gammas,
+                    "image": res.image,
+                    "grid": res.grid,
+                    "truth": msg.truth,
+                }
+            )
 
     # -- status ----------------------------------------------------------------------------------------
     def _publish_status(self) -> None:
         st = self.stats()
         lat = st["latency_ms"]
-        self.publish("status", Status(
-            node=self.name, frames_processed=self.frames_processed, frame_rate_hz=st["frame_rate_hz"],
-            latency_ms=Latency(median=lat["median"], p95=lat["p95"]), dropped=self.dropped,
-            rejected=self.rejected, dictionary=st["dictionary"]))
+        self.publish(
+            "status",
+            Status(
+                node=self.name,
+                frames_processed=self.frames_processed,
+                frame_rate_hz=st["frame_rate_hz"],
+                latency_ms=Latency(median=lat["median"], p95=lat["p95"]),
+                dropped=self.dropped,
+                rejected=self.rejected,
+                dictionary=st["dictionary"],
+            ),
+        )
 
     def _status_loop(self) -> None:
         while not self._stop.wait(self.cfg.status_period):

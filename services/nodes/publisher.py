@@ -122,11 +122,23 @@ class Publisher(Node):
 
     role = "publisher"
 
-    def __init__(self, session: zenoh.Session, rig: str, source: Source, pace: str = "original",
-                 rate: float | None = None, speed: float = 1.0, window: int = 2,
-                 wait_for: Iterable[str] = ("processor",), wait_timeout: float = 10.0, ack_timeout: float = 30.0,
-                 max_frame_bytes: int = DEFAULT_MAX_BYTES, limit: int | None = None, name: str = "publisher",
-                 on_publish: Callable[[Item, float], None] | None = None) -> None:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        rig: str,
+        source: Source,
+        pace: str = "original",
+        rate: float | None = None,
+        speed: float = 1.0,
+        window: int = 2,
+        wait_for: Iterable[str] = ("processor",),
+        wait_timeout: float = 10.0,
+        ack_timeout: float = 30.0,
+        max_frame_bytes: int = DEFAULT_MAX_BYTES,
+        limit: int | None = None,
+        name: str = "publisher",
+        on_publish: Callable[[Item, float], None] | None = None,
+    ) -> None:
         if pace not in PACES:
             raise ValueError(f"--pace: expected one of {', '.join(PACES)}, got {pace!r}")
         if pace == "rate" and not (rate and rate > 0):
@@ -193,10 +205,12 @@ class Publisher(Node):
             for node in self.wait_for:
                 if not wait_for_token(s, self._token_key(node), self.wait_timeout):
                     if self.pace == "ack" and node == "processor":
-                        raise TimeoutError(f"no processor on fp/{self.rig} after {self.wait_timeout:.0f} s "
-                                           "(--pace ack needs one)")
-                    log.warning("no %s seen on fp/%s after %.0f s; publishing anyway", node, self.rig,
-                                self.wait_timeout)
+                        raise TimeoutError(
+                            f"no processor on fp/{self.rig} after {self.wait_timeout:.0f} s (--pace ack needs one)"
+                        )
+                    log.warning(
+                        "no %s seen on fp/%s after %.0f s; publishing anyway", node, self.rig, self.wait_timeout
+                    )
             if self.wait_for and not wait_for_matching(rf_pub, self.wait_timeout):
                 log.warning("no subscriber to %s after %.0f s; publishing anyway", self.keys.rf, self.wait_timeout)
             t0_wall: float | None = None
@@ -236,7 +250,13 @@ class Publisher(Node):
             self.close()
         t_end = time.time()
         span = t_end - (t_first or t_start)
-        return {"published": self.published, "rejected": self.rejected, "bytes": self.bytes,
-                "acked": None if acks is None else acks.acked, "ack_timeouts": None if acks is None else acks.timed_out,
-                "wall_s": t_end - t_start, "frame_rate_hz": self.published / span if span > 0 else 0.0,
-                "pace": self.pace}
+        return {
+            "published": self.published,
+            "rejected": self.rejected,
+            "bytes": self.bytes,
+            "acked": None if acks is None else acks.acked,
+            "ack_timeouts": None if acks is None else acks.timed_out,
+            "wall_s": t_end - t_start,
+            "frame_rate_hz": self.published / span if span > 0 else 0.0,
+            "pace": self.pace,
+        }

@@ -82,9 +82,15 @@ class _Segment:
         self.file: IO[bytes] = open(path, "wb")  # closed in finish()
         self.writer = Writer(self.file, chunk_size=chunk_size, compression=COMPRESSION[compression])
         self.writer.start(profile="", library="fingerprint services.nodes.recorder")
-        self.writer.add_metadata("fingerprint", {"wire": "FPWIRE01", "message_encoding": MESSAGE_ENCODING,
-                                                 "key_expr": key_expr,
-                                                 "started": datetime.now(timezone.utc).isoformat()})
+        self.writer.add_metadata(
+            "fingerprint",
+            {
+                "wire": "FPWIRE01",
+                "message_encoding": MESSAGE_ENCODING,
+                "key_expr": key_expr,
+                "started": datetime.now(timezone.utc).isoformat(),
+            },
+        )
         self.schemas: dict[str, int] = {}
         self.channels: dict[tuple[str, str], int] = {}
         self.sequence: Counter[int] = Counter()
@@ -131,10 +137,19 @@ class Recorder(Node):
 
     role = "recorder"
 
-    def __init__(self, session: zenoh.Session, path: str | Path, key_expr: str = ALL_RIGS, rig: str | None = None,
-                 compression: str = "none", flush_interval: float = 0.5, max_bytes: int | None = None,
-                 max_seconds: float | None = None, chunk_size: int = 4 << 20,
-                 max_queue_bytes: int = 512 << 20) -> None:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        path: str | Path,
+        key_expr: str = ALL_RIGS,
+        rig: str | None = None,
+        compression: str = "none",
+        flush_interval: float = 0.5,
+        max_bytes: int | None = None,
+        max_seconds: float | None = None,
+        chunk_size: int = 4 << 20,
+        max_queue_bytes: int = 512 << 20,
+    ) -> None:
         if compression not in COMPRESSION:
             raise ValueError(f"--compression: expected one of {', '.join(COMPRESSION)}, got {compression!r}")
         if flush_interval <= 0:
@@ -200,8 +215,9 @@ class Recorder(Node):
             except (ValueError, OverflowError, OSError):
                 pass
         att = sample.attachment
-        rec = _Received(str(sample.key_expr), sample.payload.to_bytes(), att.to_bytes() if att is not None else None,
-                        log_ns, pub_ns)
+        rec = _Received(
+            str(sample.key_expr), sample.payload.to_bytes(), att.to_bytes() if att is not None else None, log_ns, pub_ns
+        )
         n = len(rec.payload)
         with self._budget:  # an oversized message still goes alone
             while self._queued and self._queued + n > self.max_queue_bytes and not self._stop.is_set():
@@ -235,7 +251,8 @@ class Recorder(Node):
                     seg.flush()
                     last_flush = now
                     if (self.max_bytes is not None and seg.size() >= self.max_bytes) or (
-                            self.max_seconds is not None and now - seg.opened >= self.max_seconds):
+                        self.max_seconds is not None and now - seg.opened >= self.max_seconds
+                    ):
                         if seg.messages:
                             seg.finish()
                             self._open_segment()
@@ -252,5 +269,9 @@ class Recorder(Node):
                 self._segment = None
 
     def summary(self) -> dict[str, Any]:
-        return {"files": [str(p) for p in self.files], "messages": self.received, "by_key": dict(self.counts),
-                "error": self.error}
+        return {
+            "files": [str(p) for p in self.files],
+            "messages": self.received,
+            "by_key": dict(self.counts),
+            "error": self.error,
+        }

@@ -32,10 +32,10 @@ __all__ = ["Target", "gamma_over_confocal", "peak_position", "targets_over_confo
 DB_FLOOR = -30.0
 #: (dim, bright) RGB of the γ overlay of the 1st, 2nd, … target (red and green as in the paper).
 HUES: tuple[tuple[tuple[float, float, float], tuple[float, float, float]], ...] = (
-    ((0.45, 0.0, 0.0), (1.0, 0.1, 0.05)),    # red
-    ((0.0, 0.35, 0.0), (0.15, 1.0, 0.15)),   # green
-    ((0.0, 0.15, 0.5), (0.2, 0.6, 1.0)),     # blue
-    ((0.4, 0.0, 0.4), (1.0, 0.3, 1.0)),      # magenta
+    ((0.45, 0.0, 0.0), (1.0, 0.1, 0.05)),  # red
+    ((0.0, 0.35, 0.0), (0.15, 1.0, 0.15)),  # green
+    ((0.0, 0.15, 0.5), (0.2, 0.6, 1.0)),  # blue
+    ((0.4, 0.0, 0.4), (1.0, 0.3, 1.0)),  # magenta
 )
 MM = 1e3
 RING_MM = 1.0  # radius of the ring around a detection of unknown size, mm
@@ -63,10 +63,10 @@ def peak_position(grid: Any, gamma: np.ndarray) -> np.ndarray:
 
 @dataclass
 class _Section:
-    plane: str            # "xz" or "yz"
-    index: int | None     # index along the normal axis (None: the 2D grid itself)
+    plane: str  # "xz" or "yz"
+    index: int | None  # index along the normal axis (None: the 2D grid itself)
     title: str
-    extent: list[float]   # imshow extent, mm
+    extent: list[float]  # imshow extent, mm
     xlabel: str
 
 
@@ -90,8 +90,11 @@ def _sections(grid: Grid, targets: Sequence[Target]) -> list[_Section]:
         if i in seen:
             continue
         seen.add(i)
-        out.append(_Section("yz", i, f"(y, z) at x = {grid.x[i] * MM:.1f} mm\nthrough {t.name}",
-                            [*_edges(grid.y), z1, z0], "y (mm)"))
+        out.append(
+            _Section(
+                "yz", i, f"(y, z) at x = {grid.x[i] * MM:.1f} mm\nthrough {t.name}", [*_edges(grid.y), z1, z0], "y (mm)"
+            )
+        )
     return out
 
 
@@ -111,8 +114,11 @@ def _off_plane(grid: Grid, p: np.ndarray, sec: _Section) -> float:
     """Distance of a point from the section plane, m (0 on a 2D grid)."""
     if sec.index is None:
         return 0.0
-    return abs(float(p[1]) - float(grid.y[sec.index])) if sec.plane == "xz" else \
-        abs(float(p[0]) - float(grid.x[sec.index]))
+    return (
+        abs(float(p[1]) - float(grid.y[sec.index]))
+        if sec.plane == "xz"
+        else abs(float(p[0]) - float(grid.x[sec.index]))
+    )
 
 
 def _nice_length(span_mm: float) -> float:
@@ -133,8 +139,14 @@ def _overlay_cmap(k: int) -> Any:
     return LinearSegmentedColormap.from_list(f"gamma{k}", [(*dim, 0.55), (*bright, 1.0)])
 
 
-def targets_over_confocal(path: str | Path, grid: Grid, confocal: np.ndarray, targets: Sequence[Target],
-                          title: str = "", threshold: float = 0.6) -> None:
+def targets_over_confocal(
+    path: str | Path,
+    grid: Grid,
+    confocal: np.ndarray,
+    targets: Sequence[Target],
+    title: str = "",
+    threshold: float = 0.6,
+) -> None:
     """The paper's Figure 2 for one frame: confocal sections in dB (top row) and the same with each
     target's γ in dB over it (bottom row), scale bars, detections, sphere outlines; written to ``path``."""
     import matplotlib
@@ -165,19 +177,34 @@ def targets_over_confocal(path: str | Path, grid: Grid, confocal: np.ndarray, ta
     bar = _nice_length(min(widths))
     panel_h = 3.0
     fig_w = min(panel_h * sum(widths) / height + 2.6, 24.0)
-    fig, axes = plt.subplots(2, len(secs), figsize=(fig_w, 2 * panel_h + 1.3), squeeze=False,
-                             width_ratios=widths, layout="constrained")
+    fig, axes = plt.subplots(
+        2, len(secs), figsize=(fig_w, 2 * panel_h + 1.3), squeeze=False, width_ratios=widths, layout="constrained"
+    )
     for c, sec in enumerate(secs):
         for row in (0, 1):
             ax = axes[row, c]
             ax.set_facecolor("black")
-            grey = ax.imshow(_cut(conf_db, sec), extent=sec.extent, cmap="gray", vmin=DB_FLOOR, vmax=0,
-                             aspect="equal", interpolation="nearest")
+            grey = ax.imshow(
+                _cut(conf_db, sec),
+                extent=sec.extent,
+                cmap="gray",
+                vmin=DB_FLOOR,
+                vmax=0,
+                aspect="equal",
+                interpolation="nearest",
+            )
             if row == 1:
                 for k, gdb in enumerate(gamma_db):
                     g = np.ma.masked_less(_cut(gdb, sec), floor_db)
-                    ax.imshow(g, extent=sec.extent, cmap=_overlay_cmap(k), vmin=floor_db, vmax=0.0,
-                              aspect="equal", interpolation="nearest")
+                    ax.imshow(
+                        g,
+                        extent=sec.extent,
+                        cmap=_overlay_cmap(k),
+                        vmin=floor_db,
+                        vmax=0.0,
+                        aspect="equal",
+                        interpolation="nearest",
+                    )
             for k, t in enumerate(targets):
                 colour = HUES[k % len(HUES)][1]
                 h, v = _in_plane(t.found, sec)
@@ -185,19 +212,39 @@ def targets_over_confocal(path: str | Path, grid: Grid, confocal: np.ndarray, ta
                 in_plane = off <= max(grid.spacing)
                 # No marker on the detection itself: it would hide γ's spot (a few pixels wide).
                 if t.diameter:
-                    r2 = (t.diameter / 2) ** 2 - off ** 2  # the sphere cut by this plane
+                    r2 = (t.diameter / 2) ** 2 - off**2  # the sphere cut by this plane
                     if r2 > 0:
                         ax.add_patch(Circle((h, v), math.sqrt(r2) * MM, fill=False, ls="--", lw=1.4, ec=colour))
                 elif in_plane:
                     ax.add_patch(Circle((h, v), RING_MM, fill=False, ls=":", lw=1.4, ec=colour))
                 if in_plane and row == 1 and t.c_gamma is not None:
-                    ax.text(h + RING_MM, v + RING_MM, f"C$_γ$ = {t.c_gamma:.1f}", color=colour, ha="left",
-                            va="top", fontsize=9, fontweight="bold", clip_on=True,
-                            bbox={"facecolor": "black", "alpha": 0.6, "pad": 1.5, "lw": 0})
+                    ax.text(
+                        h + RING_MM,
+                        v + RING_MM,
+                        f"C$_γ$ = {t.c_gamma:.1f}",
+                        color=colour,
+                        ha="left",
+                        va="top",
+                        fontsize=9,
+                        fontweight="bold",
+                        clip_on=True,
+                        bbox={"facecolor": "black", "alpha": 0.6, "pad": 1.5, "lw": 0},
+                    )
                 if t.truth is not None and _off_plane(grid, t.truth, sec) <= max(grid.spacing):
                     ax.plot(*_in_plane(t.truth, sec), "D", mfc="none", mec="cyan", ms=12, mew=1.0)
-            ax.add_artist(AnchoredSizeBar(ax.transData, bar, f"{bar:g} mm", "lower left", pad=0.4, color="white",
-                                          frameon=False, size_vertical=height / 60, fontproperties={"size": 9}))
+            ax.add_artist(
+                AnchoredSizeBar(
+                    ax.transData,
+                    bar,
+                    f"{bar:g} mm",
+                    "lower left",
+                    pad=0.4,
+                    color="white",
+                    frameon=False,
+                    size_vertical=height / 60,
+                    fontproperties={"size": 9},
+                )
+            )
             ax.set_xlim(sec.extent[0], sec.extent[1])
             ax.set_ylim(sec.extent[2], sec.extent[3])
             if row == 0:
@@ -208,16 +255,28 @@ def targets_over_confocal(path: str | Path, grid: Grid, confocal: np.ndarray, ta
                 ax.set_ylabel(("confocal image" if row == 0 else "γ over confocal") + "\nz (mm)")
     fig.colorbar(grey, ax=axes[0, :], label="confocal (dB re max)", shrink=0.9, pad=0.01, aspect=15)
     for k in reversed(range(len(targets))):  # the first target's bar nearest the maps
-        fig.colorbar(ScalarMappable(Normalize(floor_db, 0.0), _overlay_cmap(k)), ax=axes[1, :], shrink=0.9,
-                     pad=0.01, aspect=15, label=f"γ {targets[k].name} (dB re max)")
+        fig.colorbar(
+            ScalarMappable(Normalize(floor_db, 0.0), _overlay_cmap(k)),
+            ax=axes[1, :],
+            shrink=0.9,
+            pad=0.01,
+            aspect=15,
+            label=f"γ {targets[k].name} (dB re max)",
+        )
     handles = []
     for k, t in enumerate(targets):
         colour = HUES[k % len(HUES)][1]
-        handles.append(Line2D([], [], ls="--", color=colour,
-                              label=f"{t.name}: outline of d = {t.diameter * MM:g} mm centred on its detection")
-                       if t.diameter else
-                       Line2D([], [], ls=":", color=colour,
-                              label=f"{t.name}: {RING_MM:g} mm ring around its detection"))
+        handles.append(
+            Line2D(
+                [],
+                [],
+                ls="--",
+                color=colour,
+                label=f"{t.name}: outline of d = {t.diameter * MM:g} mm centred on its detection",
+            )
+            if t.diameter
+            else Line2D([], [], ls=":", color=colour, label=f"{t.name}: {RING_MM:g} mm ring around its detection")
+        )
     if any(t.truth is not None for t in targets):
         handles.append(Line2D([], [], ls="none", marker="D", mfc="none", mec="cyan", label="ground truth"))
     fig.legend(handles=handles, loc="outside lower center", ncols=len(handles), fontsize=9, frameon=False)
@@ -227,20 +286,44 @@ def targets_over_confocal(path: str | Path, grid: Grid, confocal: np.ndarray, ta
     plt.close(fig)
 
 
-def gamma_over_confocal(path: str | Path, grid: Grid, confocal: np.ndarray, gamma: np.ndarray,
-                        found: np.ndarray, truth: np.ndarray | None = None, title: str = "",
-                        threshold: float = 0.6, *, name: str = "target", diameter: float | None = None,
-                        c_gamma: float | None = None) -> None:
+def gamma_over_confocal(
+    path: str | Path,
+    grid: Grid,
+    confocal: np.ndarray,
+    gamma: np.ndarray,
+    found: np.ndarray,
+    truth: np.ndarray | None = None,
+    title: str = "",
+    threshold: float = 0.6,
+    *,
+    name: str = "target",
+    diameter: float | None = None,
+    c_gamma: float | None = None,
+) -> None:
     """One γ-map over the confocal image (`targets_over_confocal` with a single `Target`); ``diameter``
     (m) draws the target's outline at ``found``, ``c_gamma`` labels it."""
-    targets_over_confocal(path, grid, confocal, [Target(name, gamma, np.asarray(found, float), diameter,
-                                                        None if truth is None else np.asarray(truth, float),
-                                                        c_gamma)],
-                          title=title, threshold=threshold)
+    targets_over_confocal(
+        path,
+        grid,
+        confocal,
+        [
+            Target(
+                name,
+                gamma,
+                np.asarray(found, float),
+                diameter,
+                None if truth is None else np.asarray(truth, float),
+                c_gamma,
+            )
+        ],
+        title=title,
+        threshold=threshold,
+    )
 
 
-def tracks_over_confocal(path: str | Path, grid: Grid, confocal: np.ndarray, history: list[dict],
-                         title: str = "") -> None:
+def tracks_over_confocal(
+    path: str | Path, grid: Grid, confocal: np.ndarray, history: list[dict], title: str = ""
+) -> None:
     """Tracks against the truth over the confocal image (dB; 3D: the x–z section at y = 0), with one zoom
     per target and the distance to the truth per frame (issue 5 figure).
 
@@ -258,13 +341,23 @@ def tracks_over_confocal(path: str | Path, grid: Grid, confocal: np.ndarray, his
     sec = confocal[:, grid.nearest_index(np.zeros(3))[1], :] if grid.ndim == 3 else confocal
     img = 10 * np.log10(sec.T / max(float(sec.max()), 1e-30) + 1e-12)
     ext = [grid.x[0] * MM, grid.x[-1] * MM, grid.z[-1] * MM, grid.z[0] * MM]
-    names = sorted({t["name"] for h in history for t in h.get("truth", [])}
-                   | {tr["fingerprint"] for h in history for tr in h["tracks"]})
+    names = sorted(
+        {t["name"] for h in history for t in h.get("truth", [])}
+        | {tr["fingerprint"] for h in history for tr in h["tracks"]}
+    )
     colours = {n: HUES[k % len(HUES)][1] for k, n in enumerate(names)}
-    truth = {n: np.array([[h["frame_index"], *t["position_m"]] for h in history for t in h.get("truth", [])
-                          if t["name"] == n]).reshape(-1, 4) for n in names}
-    argmax = {n: np.array([[h["frame_index"], *a["position_m"]] for h in history for a in h.get("argmax", [])
-                           if a["name"] == n]).reshape(-1, 4) for n in names}
+    truth = {
+        n: np.array(
+            [[h["frame_index"], *t["position_m"]] for h in history for t in h.get("truth", []) if t["name"] == n]
+        ).reshape(-1, 4)
+        for n in names
+    }
+    argmax = {
+        n: np.array(
+            [[h["frame_index"], *a["position_m"]] for h in history for a in h.get("argmax", []) if a["name"] == n]
+        ).reshape(-1, 4)
+        for n in names
+    }
     tracks: dict[tuple[str, int], list[list[float]]] = {}
     cr: dict[tuple[str, int], list[tuple[float, float]]] = {}
     for h in history:
@@ -286,22 +379,27 @@ def tracks_over_confocal(path: str | Path, grid: Grid, confocal: np.ndarray, his
                 ax.plot(tru[-1, 1] * MM, tru[-1, 3] * MM, "o", mfc="none", mec="cyan", ms=9)  # last (or static)
                 d = next((t.get("diameter_m") for h in history for t in h.get("truth", []) if t["name"] == n), None)
                 if d:
-                    ax.add_patch(Circle((tru[0, 1] * MM, tru[0, 3] * MM), d / 2 * MM, fill=False,
-                                        ec=colours[n], ls=":", lw=1))
+                    ax.add_patch(
+                        Circle((tru[0, 1] * MM, tru[0, 3] * MM), d / 2 * MM, fill=False, ec=colours[n], ls=":", lw=1)
+                    )
         for (n, tid), pts in tracks.items():
             p = np.array(pts)
             ax.plot(p[:, 1] * MM, p[:, 3] * MM, ".-", color=colours[n], ms=4, lw=1, label=f"track {tid} ({n})")
         for n, a in argmax.items():
             if a.size:
-                ax.plot(a[:, 1] * MM, a[:, 3] * MM, "x", color=colours[n], ms=5, alpha=0.7,
-                        label=f"per-frame argmax ({n})")
+                ax.plot(
+                    a[:, 1] * MM, a[:, 3] * MM, "x", color=colours[n], ms=5, alpha=0.7, label=f"per-frame argmax ({n})"
+                )
     ax0.set_xlim(ext[0], ext[1])
     ax0.set_ylim(ext[2], ext[3])
     ax0.plot([], [], "-", color="cyan", lw=2.5, label="truth")
     ax0.legend(loc="lower left", fontsize=7)
     ax_err.set_title("distance of each track to its target's truth, per frame", fontsize=9)
-    ax0.set_title((f"{title}\n" if title else "") + "tracks and truth (cyan, ○ last) over the confocal\nimage"
-                  f"{' at y = 0' if grid.ndim == 3 else ''} (dB); dotted: target outline", fontsize=9)
+    ax0.set_title(
+        (f"{title}\n" if title else "") + "tracks and truth (cyan, ○ last) over the confocal\nimage"
+        f"{' at y = 0' if grid.ndim == 3 else ''} (dB); dotted: target outline",
+        fontsize=9,
+    )
     for ax in [ax0, *zooms]:
         ax.set_xlabel("x (mm)")
         ax.set_ylabel("z (mm)")
@@ -314,6 +412,7 @@ def tracks_over_confocal(path: str | Path, grid: Grid, confocal: np.ndarray, his
         ax.set_xlim(centre[0] - half, centre[0] + half)
         ax.set_ylim(centre[1] + half, centre[1] - half)
         ax.set_title(f"zoom on {n}", fontsize=9)
+
     def plot_errors(n: str, rows: np.ndarray, style: str, label: str) -> None:
         """Distance (mm) of rows [frame, x, y, z] to target n's truth in the same frame."""
         tru = {int(f): r for f, *r in truth[n]}
@@ -325,8 +424,9 @@ def tracks_over_confocal(path: str | Path, grid: Grid, confocal: np.ndarray, his
         plot_errors(n, np.array(pts), "o-", f"track {tid} ({n})")
         if (n, tid) in cr:
             c = np.array(cr[(n, tid)])
-            ax_err.semilogy(c[:, 0], c[:, 1] * MM, "-", color=colours[n], lw=3, alpha=0.3,
-                            label=f"Cramér–Rao radius ({n})")
+            ax_err.semilogy(
+                c[:, 0], c[:, 1] * MM, "-", color=colours[n], lw=3, alpha=0.3, label=f"Cramér–Rao radius ({n})"
+            )
     for n, a in argmax.items():
         plot_errors(n, a, "x:", f"per-frame argmax ({n})")
     ax_err.axhline(1.0, color="k", ls="--", lw=0.8, label="1 mm")

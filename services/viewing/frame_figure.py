@@ -34,8 +34,9 @@ def _pfa_text(pfa: float) -> str:
     return "PFA < 1e-300" if pfa == 0 else f"PFA = {pfa:.1e}"  # 0: exp(−πC²/4) underflowed
 
 
-def to_figure(recording: str | Path, frame: int, png: str | Path, *, fingerprint: str | None = None,
-              threshold: float = 0.6) -> dict[str, Any]:
+def to_figure(
+    recording: str | Path, frame: int, png: str | Path, *, fingerprint: str | None = None, threshold: float = 0.6
+) -> dict[str, Any]:
     """PNG of the frame's γ-maps (every fingerprint, or only ``fingerprint``) over its confocal image, in
     the layout of the paper's Figure 2 (``services.viewing.figures.targets_over_confocal``): sections through each
     detection (γ's peak when none), the sphere's outline when its diameter is known (the fingerprint's
@@ -58,8 +59,9 @@ def to_figure(recording: str | Path, frame: int, png: str | Path, *, fingerprint
                 if t.name is not None:
                     truth[t.name] = t
     if not gammas or image is None:
-        raise ValueError(f"{recording}: frame {frame} has no γ-map{f' of {fingerprint}' if fingerprint else ''} "
-                         f"and confocal image")
+        raise ValueError(
+            f"{recording}: frame {frame} has no γ-map{f' of {fingerprint}' if fingerprint else ''} and confocal image"
+        )
     grids = {g.grid.to_grid().shape for g in gammas.values()} | {image.grid.to_grid().shape}
     if len(grids) > 1:
         raise ValueError(f"{recording}: frame {frame}: γ-maps and confocal image on different grids {grids}")
@@ -69,15 +71,31 @@ def to_figure(recording: str | Path, frame: int, png: str | Path, *, fingerprint
         det = next((d for d in dets if d.fingerprint == name), None)
         found = np.array(det.position_m) if det is not None else peak_position(g.grid, g.gamma)
         t = truth.get(name, TargetTruth())
-        targets.append(Target(name, g.gamma, found, _diameter(det.state if det else None, g.state, t.to_dict()),
-                              t.position if t.position_m is not None else None,
-                              det.contrast_c_gamma if det is not None else None))
-        summary.append(f"{name}: C_γ = {det.contrast_c_gamma:.1f}, {_pfa_text(det.pfa)}" if det is not None
-                       else f"{name}: no detection (γ's peak)")
+        targets.append(
+            Target(
+                name,
+                g.gamma,
+                found,
+                _diameter(det.state if det else None, g.state, t.to_dict()),
+                t.position if t.position_m is not None else None,
+                det.contrast_c_gamma if det is not None else None,
+            )
+        )
+        summary.append(
+            f"{name}: C_γ = {det.contrast_c_gamma:.1f}, {_pfa_text(det.pfa)}"
+            if det is not None
+            else f"{name}: no detection (γ's peak)"
+        )
     confocal = image.image if image.scale == "linear" else (10 ** (image.image / 10)).astype(np.float32)
     title = f"frame {frame}: γ over the confocal image\n" + "; ".join(summary)
-    targets_over_confocal(png, gammas[next(iter(gammas))].grid.to_grid(), confocal, targets, title=title,
-                          threshold=threshold)
-    return {"png": str(png), "frame": frame, "fingerprint": targets[0].name,
-            "fingerprints": [t.name for t in targets], "detection": targets[0].found.tolist(),
-            "diameters_m": {t.name: t.diameter for t in targets}}
+    targets_over_confocal(
+        png, gammas[next(iter(gammas))].grid.to_grid(), confocal, targets, title=title, threshold=threshold
+    )
+    return {
+        "png": str(png),
+        "frame": frame,
+        "fingerprint": targets[0].name,
+        "fingerprints": [t.name for t in targets],
+        "detection": targets[0].found.tolist(),
+        "diameters_m": {t.name: t.diameter for t in targets},
+    }

@@ -125,9 +125,14 @@ class _Converter:
         elif isinstance(msg, Detections):
             fr.detections = {d.fingerprint: d for d in msg.detections}
             for d in msg.detections:
-                self._log(f"world/detections/{d.fingerprint}",
-                          rr.Points3D([d.position_m], radii=[max(d.precision_m)],
-                                      labels=[f"{d.fingerprint}: C_γ {d.contrast_c_gamma:.1f}"]))
+                self._log(
+                    f"world/detections/{d.fingerprint}",
+                    rr.Points3D(
+                        [d.position_m],
+                        radii=[max(d.precision_m)],
+                        labels=[f"{d.fingerprint}: C_γ {d.contrast_c_gamma:.1f}"],
+                    ),
+                )
                 self._log(f"series/{d.fingerprint}/c_gamma", rr.Scalars(d.contrast_c_gamma))
                 self._log(f"series/{d.fingerprint}/log10_pfa", rr.Scalars(math.log10(max(d.pfa, 1e-300))))
         else:
@@ -149,10 +154,16 @@ class _Converter:
         step = [float(np.mean(np.diff(a))) if a.size > 1 else 1e-4 for a in (grid.x, grid.y, grid.z)]
         corner = [float(a[0]) - s / 2 for a, s in zip((grid.x, grid.y, grid.z), step, strict=True)]
         values = np.ascontiguousarray(g.gamma.transpose(2, 1, 0)).astype(np.float16)
-        self._log(f"world/gamma/{g.fingerprint}",
-                  rr.Volume3D(values, voxel_size=step, translation=corner,
-                              value_range=(self.threshold * float(np.max(g.gamma)), float(np.max(g.gamma))),
-                              colormap="inferno"))
+        self._log(
+            f"world/gamma/{g.fingerprint}",
+            rr.Volume3D(
+                values,
+                voxel_size=step,
+                translation=corner,
+                value_range=(self.threshold * float(np.max(g.gamma)), float(np.max(g.gamma))),
+                colormap="inferno",
+            ),
+        )
 
     def _sections(self, frame_index: int, final: bool) -> None:
         """Log the sections of a frame's γ-maps once its image and detections are in (or at the end)."""
@@ -178,8 +189,12 @@ class _Converter:
                     grey = np.clip((conf[plane] - DB_FLOOR) / -DB_FLOOR * 255, 0, 255).astype(np.uint8)
                     self._log(f"{base}/confocal", rr.Image(grey, draw_order=0.0))
                 shown = np.where(gimg >= self.threshold * gmax, gimg, 0).astype(np.float32)
-                self._log(f"{base}/gamma", rr.DepthImage(shown, meter=1.0, colormap="inferno",
-                                                        depth_range=(self.threshold * gmax, gmax), draw_order=1.0))
+                self._log(
+                    f"{base}/gamma",
+                    rr.DepthImage(
+                        shown, meter=1.0, colormap="inferno", depth_range=(self.threshold * gmax, gmax), draw_order=1.0
+                    ),
+                )
             fr.done.add(name)
         if final:
             del self.frames[frame_index]
@@ -192,10 +207,15 @@ class _Converter:
         import rerun.blueprint as rrb
 
         planes = ("xz", "yz") if self.has_3d else ("xz",)
-        sections = [rrb.Spatial2DView(origin=f"sections/{fp}/{p}", name=f"{fp} {p}: γ over confocal (dB)")
-                    for fp in self.fingerprints for p in planes]
-        series = [rrb.TimeSeriesView(origin="series", contents=f"series/*/{k}/**", name=name)
-                  for k, name in (("c_gamma", "C_γ"), ("log10_pfa", "log10 PFA"))]
+        sections = [
+            rrb.Spatial2DView(origin=f"sections/{fp}/{p}", name=f"{fp} {p}: γ over confocal (dB)")
+            for fp in self.fingerprints
+            for p in planes
+        ]
+        series = [
+            rrb.TimeSeriesView(origin="series", contents=f"series/*/{k}/**", name=name)
+            for k, name in (("c_gamma", "C_γ"), ("log10_pfa", "log10 PFA"))
+        ]
         series.append(rrb.TimeSeriesView(origin="series/latency_ms", name="latency (ms)"))
         return rrb.Blueprint(
             rrb.Horizontal(
@@ -228,14 +248,28 @@ def to_rrd(recording: str | Path, rrd: str | Path, *, threshold: float = 0.6) ->
     rec.send_blueprint(conv.blueprint(), make_active=True, make_default=True)
     rec.flush()
     rec.disconnect()
-    return {"rrd": str(rrd), "messages": n, "undecodable": report.get("undecodable", 0),
-            "error": report.get("error"), "frames": sorted(conv.frame_indices),
-            "fingerprints": list(conv.fingerprints), "logged": dict(conv.logged)}
+    return {
+        "rrd": str(rrd),
+        "messages": n,
+        "undecodable": report.get("undecodable", 0),
+        "error": report.get("error"),
+        "frames": sorted(conv.frame_indices),
+        "fingerprints": list(conv.fingerprints),
+        "logged": dict(conv.logged),
+    }
 
 
-def live_to_rrd(bus: Any, rig: str, rrd: str | Path, *, duration: float | None = None,
-                stop: Any = None, threshold: float = 0.6, stats: dict[str, int] | None = None,
-                grpc_url: str | None = None) -> dict[str, Any]:
+def live_to_rrd(
+    bus: Any,
+    rig: str,
+    rrd: str | Path,
+    *,
+    duration: float | None = None,
+    stop: Any = None,
+    threshold: float = 0.6,
+    stats: dict[str, int] | None = None,
+    grpc_url: str | None = None,
+) -> dict[str, Any]:
     """Subscribe to the processor's outputs on ``fp/<rig>/{gamma,image,detections,tracks,status}`` and
     log them to a Rerun ``.rrd`` as they arrive (same entities and blueprint as `to_rrd`), until
     `duration` seconds pass or `stop` (a threading.Event; default: SIGINT/SIGTERM) is set. Announces
@@ -280,8 +314,10 @@ def live_to_rrd(bus: Any, rig: str, rrd: str | Path, *, duration: float | None =
             rec.send_blueprint(conv.blueprint(), make_active=True, make_default=True)
 
     with open_session(bus) as session:
-        subs = [session.declare_subscriber(k.topic(t), on_sample) for t in ("gamma", "image", "detections", "tracks",
-                                                                             "status")]
+        subs = [
+            session.declare_subscriber(k.topic(t), on_sample)
+            for t in ("gamma", "image", "detections", "tracks", "status")
+        ]
         token = session.liveliness().declare_token(k.alive("viewer"))
         t_end = time.monotonic() + duration if duration else math.inf
         try:

@@ -60,8 +60,7 @@ def rerun_executable() -> Path:
         spec = importlib.util.find_spec("rerun_cli")
         if spec is None or not spec.submodule_search_locations:
             raise FileNotFoundError("rerun_cli: not installed; reinstall rerun-sdk (it ships the rerun executable)")
-        path = Path(next(iter(spec.submodule_search_locations))) / ("rerun.exe" if sys.platform == "win32"
-                                                                     else "rerun")
+        path = Path(next(iter(spec.submodule_search_locations))) / ("rerun.exe" if sys.platform == "win32" else "rerun")
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no rerun executable; reinstall rerun-sdk or set RERUN_CLI_PATH")
     return path
@@ -70,7 +69,7 @@ def rerun_executable() -> Path:
 def _proc_net_address(hex_addr: str) -> str:
     """``0100007F`` (IPv4) or 32 hex digits (IPv6) of /proc/net/tcp*, each 32-bit word in host order."""
     raw = bytes.fromhex(hex_addr)
-    words = b"".join(raw[i:i + 4][::-1] for i in range(0, len(raw), 4)) if sys.byteorder == "little" else raw
+    words = b"".join(raw[i : i + 4][::-1] for i in range(0, len(raw), 4)) if sys.byteorder == "little" else raw
     return str(ipaddress.ip_address(words))
 
 
@@ -117,8 +116,7 @@ def _check_port(option: str, port: int) -> None:
         try:
             s.bind((LOOPBACK, port))
         except OSError as exc:
-            raise ValueError(f"{option}: {LOOPBACK}:{port} is not free ({exc.strerror}); "
-                             f"give another port") from None
+            raise ValueError(f"{option}: {LOOPBACK}:{port} is not free ({exc.strerror}); give another port") from None
 
 
 def check_ports(port: int, grpc_port: int) -> None:
@@ -202,9 +200,14 @@ def _die_with_parent() -> None:
         pass  # not Linux: the parent's own cleanup stops the child
 
 
-def serve_loopback(rrd: str | Path | None = None, *, port: int = DEFAULT_WEB_PORT,
-                   grpc_port: int = DEFAULT_GRPC_PORT, server_memory_limit: str = "1GiB",
-                   timeout: float = 30.0) -> LoopbackViewer:
+def serve_loopback(
+    rrd: str | Path | None = None,
+    *,
+    port: int = DEFAULT_WEB_PORT,
+    grpc_port: int = DEFAULT_GRPC_PORT,
+    server_memory_limit: str = "1GiB",
+    timeout: float = 30.0,
+) -> LoopbackViewer:
     """Start the Rerun web viewer and its gRPC proxy bound to 127.0.0.1 only, serving ``rrd`` (or, without
     one, whatever an SDK logs to `LoopbackViewer.grpc_url`). Returns once both ports accept connections
     and the child's listening sockets are checked to be loopback (Linux); raises ValueError for a bad or
@@ -214,13 +217,29 @@ def serve_loopback(rrd: str | Path | None = None, *, port: int = DEFAULT_WEB_POR
     check_ports(port, grpc_port)
     if rrd is not None and not Path(rrd).is_file():
         raise FileNotFoundError(f"{rrd}: no such .rrd file")
-    cmd = [str(rerun_executable()), "--serve-web", "--bind", LOOPBACK, "--web-viewer-port", str(port),
-           "--port", str(grpc_port), "--server-memory-limit", server_memory_limit]
+    cmd = [
+        str(rerun_executable()),
+        "--serve-web",
+        "--bind",
+        LOOPBACK,
+        "--web-viewer-port",
+        str(port),
+        "--port",
+        str(grpc_port),
+        "--server-memory-limit",
+        server_memory_limit,
+    ]
     if rrd is not None:
         cmd.append(str(Path(rrd).resolve()))
     log_file = tempfile.TemporaryFile()
-    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=log_file, stderr=subprocess.STDOUT,
-                            env={**os.environ, "NO_COLOR": "1"}, preexec_fn=_die_with_parent)
+    proc = subprocess.Popen(
+        cmd,
+        stdin=subprocess.DEVNULL,
+        stdout=log_file,
+        stderr=subprocess.STDOUT,
+        env={**os.environ, "NO_COLOR": "1"},
+        preexec_fn=_die_with_parent,
+    )
     viewer = LoopbackViewer(proc, port, grpc_port, log_file)
     deadline = time.monotonic() + timeout
     while not _listening(proc.pid, {port, grpc_port}):
@@ -230,8 +249,10 @@ def serve_loopback(rrd: str | Path | None = None, *, port: int = DEFAULT_WEB_POR
             raise ChildProcessError(f"rerun --serve-web exited with code {proc.returncode}: {tail}")
         if time.monotonic() > deadline:
             viewer.stop()
-            raise TimeoutError(f"rerun --serve-web: ports {port} (--port) and {grpc_port} (--grpc-port) not "
-                               f"open on {LOOPBACK} after {timeout:g} s")
+            raise TimeoutError(
+                f"rerun --serve-web: ports {port} (--port) and {grpc_port} (--grpc-port) not "
+                f"open on {LOOPBACK} after {timeout:g} s"
+            )
         time.sleep(0.05)
     listening = listening_addresses(proc.pid)
     exposed = [a for a in listening or [] if not ipaddress.ip_address(a[0]).is_loopback]
@@ -251,5 +272,4 @@ def serve_until_stopped(viewer: LoopbackViewer, stop: Any, duration: float | Non
         if viewer.proc.poll() is not None:
             if stop.wait(0.5):  # Ctrl-C in a terminal reaches the child too; not an error
                 return
-            raise ChildProcessError(f"rerun --serve-web exited with code {viewer.proc.returncode}: "
-                                    f"{viewer.log_tail()}")
+            raise ChildProcessError(f"rerun --serve-web exited with code {viewer.proc.returncode}: {viewer.log_tail()}")
