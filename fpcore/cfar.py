@@ -227,9 +227,6 @@ def null_model(
     window_cells: tuple[float, float] | None = None,
     censor: float = 8.0,
     heavy_tails: bool = True,
-    shape_guard: float = 1.0,
-    global_shape: bool = False,
-    train_scale: float = 1.0,
     own_guard: float = 2.0,
 ) -> NullModel:
     """Estimate the local null model of a γ-map (module doc, steps 1–3).
@@ -285,22 +282,12 @@ def null_model(
     stat = g2 / np.maximum(power, 1e-300)
     nu = np.full(g2.shape, np.inf)
     if heavy_tails:
-        # The shape is estimated away from anything that stands out (a target's own sidelobes and
-        # reverberation aliases, several cells around it, would read as a heavy tail and mask it).
-        quiet = (vis & ~guard(shape_guard)).astype(np.float64)
-        n = local_mean(np.ones_like(stat), quiet)  # support of the window (NaN where none trains)
-        m1 = local_mean(stat, quiet)
-        ml = local_mean(np.log(np.maximum(stat, 1e-12)), quiet)
+        # The shape is estimated on the training nodes (what stands out is censored with its guard).
+        n = local_mean(np.ones_like(stat), train)  # support of the window (NaN where none trains)
+        m1 = local_mean(stat, train)
+        ml = local_mean(np.log(np.maximum(stat, 1e-12)), train)
         ok = np.isfinite(n) & np.isfinite(m1) & np.isfinite(ml)
         nu = np.where(ok, k_shape(np.where(ok, ml - np.log(np.maximum(m1, 1e-30)), 0.0)), np.inf)
-        if global_shape:
-            # The same log-moment over the whole map: a mild excess of tail (ν of tens) is below what a
-            # window of a few hundred nodes resolves, not below what the whole map does.
-            q = quiet > 0
-            if q.sum() > 64:
-                t_q = stat[q]
-                nu_g = float(k_shape(np.mean(np.log(np.maximum(t_q, 1e-12))) - np.log(np.mean(t_q))))
-                nu = np.minimum(nu, nu_g)
     fwhm = np.array([_lag1_fwhm(stat, train > 0, ax) for ax in range(nd)])
     # Independent training cells per node: the training nodes in its window over the nodes per resel.
     # As in radar CA-CFAR, the cell under test's own guard region is not training by design: nodes
@@ -310,7 +297,7 @@ def null_model(
         near = [max(1, int(np.ceil(own_guard * c / s))) * 2 + 1 for c, s in zip(cells, grid.spacing, strict=True)]
         censored = (vis & (train == 0)).astype(np.float64)
         count += uniform_filter(censored, near, mode="constant") * float(np.prod(near))
-    train_cells = np.maximum(train_scale * count / float(np.prod(fwhm)), 2.0)
+    train_cells = np.maximum(count / float(np.prod(fwhm)), 2.0)
     level_out = power if level is None else power * np.asarray(level, np.float64)
     return NullModel(
         grid,
