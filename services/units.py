@@ -6,6 +6,7 @@ unit, it applies to all of them ("1,25mm" is 1 mm, 25 mm); `parse_band("1.8MHz:2
 
 from __future__ import annotations
 
+import math
 import re
 
 __all__ = ["parse_length", "parse_position", "parse_frequency", "parse_band", "parse_range", "UnitError"]
@@ -23,7 +24,10 @@ def _split(text: str, option: str) -> tuple[float, str]:
     m = _NUM.match(text)
     if not m:
         raise UnitError(f"{option}: cannot read {text!r} (expected a number with an optional unit, e.g. 25mm)")
-    return float(m.group(1)), m.group(2)
+    value = float(m.group(1))
+    if not math.isfinite(value):
+        raise UnitError(f"{option}: expected a finite number, got {text!r}")
+    return value, m.group(2)
 
 
 def parse_length(text: str, option: str = "length") -> float:

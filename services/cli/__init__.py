@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import traceback
 
 import fpcore
 from services.cli.characterise import add_characterise_parser
@@ -30,6 +31,7 @@ __all__ = ["build_parser", "main"]
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="fp", description="Fingerprint localisation of targets in scattering media.")
     ap.add_argument("--version", action="version", version=f"fp {fpcore.__version__}")
+    ap.add_argument("--debug", action="store_true", help="on an unexpected error, print the Python traceback too")
     sub = ap.add_subparsers(dest="command", required=True)
     add_demo_parser(sub)
     add_locate_parser(sub)
@@ -78,3 +80,25 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, OSError) as exc:
         print(f"fp {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except KeyError as exc:  # a name that is not in a table (scenario, fingerprint, key): the message says which
+        print(f"fp {args.command}: error: {exc.args[0] if exc.args else exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"fp {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except MemoryError:
+        print(
+            f"fp {args.command}: error: not enough memory for this request (a smaller grid, band or fewer "
+            "frames may fit)",
+            file=sys.stderr,
+        )
+        return 2
+    except Exception as exc:  # last resort: one line, never a traceback unless asked for (--debug)
+        if args.debug:
+            traceback.print_exc()
+        print(
+            f"fp {args.command}: error: {type(exc).__name__}: {exc} (unexpected; run `fp --debug "
+            f"{args.command} …` for the traceback)",
+            file=sys.stderr,
+        )
+        return 3

@@ -99,6 +99,18 @@ def _moving(fp: Fingerprint, text: str, data: Acquisition) -> Fingerprint:
     return moving_fingerprint(fp, velocity, data.sequence.transmit_times())
 
 
+def frame_selection(text: str) -> slice | list[int]:
+    """--frames 'I' or 'A:B' (A < B, non-negative integers; either end may be left out)."""
+    a, colon, b = text.partition(":")
+    try:
+        start, stop = int(a) if a else 0, (int(b) if b else None)
+    except ValueError:
+        raise ValueError(f"--frames: expected I or A:B with integers, got {text!r}") from None
+    if start < 0 or (stop is not None and stop <= start):
+        raise ValueError(f"--frames: expected 0 <= A < B, got {text!r}")
+    return slice(start, stop) if colon else [start]
+
+
 def calibration_name(path: str, cal: Acquisition) -> str:
     """The fingerprint's name: the target the calibration file records (so tracks and detections compare
     with that target's truth), else the file's stem."""
@@ -136,8 +148,7 @@ def run_locate(args: argparse.Namespace) -> int:
     console = Console()
     sel = None
     if args.frames:
-        a, _, b = args.frames.partition(":")
-        sel = slice(int(a or 0), int(b) if b else None) if ":" in args.frames else [int(a)]
+        sel = frame_selection(args.frames)
     frames = read_uff(args.data, args.dataset, frames=sel)
     first = frames[0]
     band = parse_band(args.band) if args.band else first.default_band()
