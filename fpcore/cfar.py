@@ -16,27 +16,30 @@ any single global formula dishonest on real maps (measured on the simulator's fo
 What this module does (cell-averaging CFAR in the radar sense, Rohling 1983, with random-field theory
 for the maximum, Worsley et al. 1996):
 
-1. **Local scale** (`NullModel.power`): the mean of γ² over a depth band of half-width `window` around
-   each depth, over all lateral nodes, censoring nodes that stand out (T > `censor` against a robust
-   median first pass) together with a guard region of one resolution cell around them — a censored
-   cell-averaging CFAR whose training cells are the lateral neighbours at the same depth.
-2. **Statistic**: T(r) = γ²(r)/γ_M²(z), exponentially distributed (χ²₂/2) under the null. The scale is
-   estimated from `n_train` independent training cells, so the per-node tail is the CA-CFAR law
-   P(T > t) = (1 + t/n)^(−n) (→ e^{−t} for large n); we carry that into the field tail by the
-   effective threshold t_eff = n ln(1 + t/n).
+1. **Local scale** (`NullModel.power`): γ² is first divided by a physical null level when one is given
+   (fpcore.background: the data's energy in the fingerprint's time support × the aperture factor);
+   what remains is averaged over a training window of ± `window_cells` resolution cells around each
+   node (± 6 lateral × ± 3 axial), censoring nodes that stand out (T > `censor` against a robust
+   per-depth median) together with a guard region of one resolution cell: a censored cell-averaging
+   CFAR. Nodes outside `visible` neither train nor are searched.
+2. **Statistic**: T(r) = γ²(r)/γ_M²(r), exponentially distributed (χ²₂/2) under the null; where the
+   local log-moments show a heavier tail, a K law of shape ν puts it back on the exponential scale,
+   S = −ln P(T > t). The level is estimated from n(r) independent training cells, counted per node (a
+   node's own guard region, ± `own_guard` cells, not counted as missing), so the tail is the CA-CFAR
+   law (1 + S/n)^(−n) = e^{−S_eff}, S_eff = n ln(1 + S/n): `NullModel.significance`.
 3. **Smoothness** (`NullModel.fwhm`): the roughness of the underlying Gaussian field per axis from the
    lag-one autocorrelation ρ₁ of T (ρ_T = |μ|², so for a Gaussian-shaped correlation λ = −ln ρ₁/h²),
    as FWHM = √(4 ln 2/λ) — measured on the map itself, not taken from a formula.
 4. **Maximum**: the probability that the maximum of the null field over a region exceeds t is the
    expected Euler characteristic of the excursion set (Worsley's χ² field with ν = 2 degrees of
-   freedom), E[EC] = Σ_d R_d ρ_d(2 t_eff), with R_d the resel counts of the region (its intrinsic
+   freedom), E[EC] = Σ_d R_d ρ_d(2 S_eff), with R_d the resel counts of the region (its intrinsic
    volumes in FWHM units); PFA = 1 − exp(−E[EC]). For a box of N independent-looking resels this is
    ≈ N e^{−t} times a factor t^{D/2} that the "L independent cells" model misses — which is why that
    model, even with the right exponent, under-reports false alarms in the tail.
 
 The calibration of this PFA is checked on target-free maps (i.i.d. noise, and the simulator's 2-D and
 3-D fog) in `tests/test_metrics.py` and `bench/validate_pfa.py`: the fraction of maps whose maximum
-reports PFA < α stays ≤ α.
+reports PFA < α stays ≤ α (measured figures: README, docs/design.md §4.9).
 """
 
 from __future__ import annotations
