@@ -267,7 +267,8 @@ class Pipeline:
                 if entry.fp is not None:
                     try:
                         imager.template(pw, entry.fp)
-                        self._level.aperture(acq, pw, entry.fp, resolution(grid, acq, band))  # cached, once
+                        # aperture factor (cached) and the null level's NUFFT plan, before the first frame is timed
+                        self._level.level(acq, pw, entry.fp, resolution(grid, acq, band))
                     except ValueError as exc:
                         entry.fp, entry.error = None, str(exc)
             self.setup_s += time.perf_counter() - t0
