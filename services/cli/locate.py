@@ -17,12 +17,12 @@ import numpy as np
 
 from fpcore import Acquisition, Fingerprint, NullLevel, moving_fingerprint
 from fpcore.geometry import to_xyz
-from fpcore.metrics import DEFAULT_MAX_PFA
+from services.cli.fingerprint_args import add_fingerprint_arguments, fingerprint_spec, warn_r0
 from services.cli.imaging import add_imaging_arguments, grid_ranges
-from services.models import build_fingerprint, check_calibration, check_r0, recorded_position
-from services.pipeline import find_targets, make_imager, null_for, resolution, truth_error, truth_positions
+from services.models import build_fingerprint
+from services.pipeline import find_targets, make_imager, null_for, truth_error, truth_positions
 from services.registry import FingerprintSpec
-from services.units import parse_band, parse_length, parse_position
+from services.units import parse_band
 
 __all__ = ["add_locate_parser", "run_locate"]
 
@@ -35,37 +35,7 @@ def add_locate_parser(sub: argparse._SubParsersAction) -> None:
         "Cramér–Rao precision. Lengths are metres unless a unit is given (25mm).",
     )
     p.add_argument("data", help="UFF file with the plane-wave frames")
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--calibration", help="UFF file: the target alone in water at r0 (fingerprint source)")
-    src.add_argument("--model", help="numerical fingerprint: 'point' or 'mirror:L=2mm,alpha=10' (alpha in degrees)")
-    p.add_argument(
-        "--r0",
-        help="calibration target position X,Z[,Y] (default: the position the calibration file "
-        "records); refused if it differs from that by more than a resolution cell",
-    )
-    p.add_argument(
-        "--force",
-        action="store_true",
-        help="proceed (with a warning) when --r0 disagrees with the calibration file's recorded position",
-    )
-    p.add_argument(
-        "--diameter",
-        help="target size for the time gate, e.g. 10mm (default: from the calibration's "
-        "truth, else measured from the calibration: the echo's first arrival)",
-    )
-    p.add_argument(
-        "--gate",
-        choices=("front", "none"),
-        default="front",
-        help="calibration time gate: 'front' (paper: after the front face's echo) or 'none'",
-    )
-    p.add_argument(
-        "--max-pfa",
-        type=float,
-        default=DEFAULT_MAX_PFA,
-        help=f"report a detection only below this calibrated false-alarm probability (default {DEFAULT_MAX_PFA:g})",
-    )
-    p.add_argument("--dataset", help="dataset name inside the UFF file(s) when there are several")
+    add_fingerprint_arguments(p)
     add_imaging_arguments(p)
     p.add_argument("--json", help="write the results as JSON (SI units)")
     p.add_argument("--png", help="write a PNG of γ over the confocal image (last frame)")
@@ -111,32 +81,6 @@ def frame_selection(text: str) -> slice | list[int]:
     return slice(start, stop) if colon else [start]
 
 
-def calibration_name(path: str, cal: Acquisition) -> str:
-    """The fingerprint's name: the target the calibration file records (so tracks and detections compare
-    with that target's truth), else the file's stem."""
-    targets = cal.ground_truth.targets
-    name = targets[0].name if targets else None
-    return name if name else Path(path).stem
-
-
-def _r0(args: argparse.Namespace, cal: Acquisition) -> tuple[np.ndarray, float | None]:
-    """(r0, diameter) of the calibration: the options', else the file's; diameter None = measure it."""
-    recorded, d_rec = recorded_position(cal)
-    if args.r0:
-        v = parse_position(args.r0, "--r0")
-        r0 = to_xyz(v, 2) if len(v) == 2 else np.array([v[0], v[2], v[1]])  # X,Z,Y → (x, y, z)
-    elif recorded is not None:
-        r0 = recorded
-    else:
-        raise ValueError("--r0: the calibration file has no target position in its truth; give --r0 X,Z[,Y]")
-    if args.diameter:
-        d = parse_length(args.diameter, "--diameter")
-        if not d >= 0:
-            raise ValueError(f"--diameter: expected a length >= 0, got {args.diameter!r}")
-        return r0, d
-    return r0, d_rec
-
-
 def run_locate(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import Progress
@@ -154,25 +98,13 @@ def run_locate(args: argparse.Namespace) -> int:
     band = parse_band(args.band) if args.band else first.default_band()
     imager = make_imager(first, band, ranges=grid_ranges(args), n_freq=args.n_freq, n_out=args.n_out)
     grid = imager.grid
-    if not 0 < args.max_pfa <= 1:
-        raise ValueError(f"--max-pfa: expected 0 < p <= 1, got {args.max_pfa}")
-    if args.calibration:
-        cal = read_uff(args.calibration, args.dataset)[0]
-        check_calibration(cal, first)
-        r0, diameter = _r0(args, cal)
-        if args.r0:
-            warning = check_r0(r0, cal, resolution(grid, first, band), force=args.force)
-            if warning:
-                console.print(f"[yellow]warning:[/yellow] {warning}")
-        spec = FingerprintSpec(
-            calibration_name(args.calibration, cal),
-            calibration=cal,
-            r0=tuple(r0),
-            diameter=diameter,
-            gate=args.gate == "front",
-        )
-    else:
-        spec = FingerprintSpec(args.model.partition(":")[0], model=args.model, r0=(0.0, 0.0, 0.0))
+    spec, cal = fingerprint_spec(args, first)
+    warning = warn_r0(args, spec, cal, grid, first, band)
+    if warning:
+        console.print(f"[yellow]warning:[/yellow] {warning}")
+    diameter = spec.diameter
+    if spec.model is not None:
+        spec = FingerprintSpec(spec.name, model=spec.model, r0=(0.0, 0.0, 0.0))
     fp = build_fingerprint(spec, first, None, imager, band, args.n_freq, args.svd_threshold)
     if args.calibration:
         how = (
@@ -182,7 +114,7 @@ def run_locate(args: argparse.Namespace) -> int:
             + (" (measured: first arrival)" if diameter is None else "")
         )
         console.print(
-            f"fingerprint from {args.calibration}: r0 = {np.round(r0 * 1e3, 2)} mm, {how}, "
+            f"fingerprint from {args.calibration}: r0 = {np.round(fp.r0 * 1e3, 2)} mm, {how}, "
             f"N_S = {fp.n_s:.1f}, N_T = {fp.n_t:.1f}, G ≈ {fp.n_s * fp.n_t:.0f}"
         )
     if args.velocity:

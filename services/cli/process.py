@@ -112,7 +112,7 @@ def specs_from_args(args: argparse.Namespace) -> list[FingerprintSpec]:
     from pathlib import Path
 
     from fpcore.io import read_uff
-    from services.cli.locate import calibration_name
+    from services.cli.fingerprint_args import calibration_name
 
     specs = []
     r0 = _xyz(args.r0, "--r0") if args.r0 else None

@@ -18,12 +18,9 @@ from typing import Any
 
 import numpy as np
 
-from fpcore.metrics import DEFAULT_MAX_PFA
+from services.cli.fingerprint_args import add_fingerprint_arguments, fingerprint_spec, warn_r0
 from services.cli.imaging import add_imaging_arguments, grid_ranges
-from services.cli.locate import _r0, calibration_name
-from services.models import check_calibration, check_r0
-from services.pipeline import Pipeline, PipelineConfig, resolution, truth_error, truth_positions
-from services.registry import FingerprintSpec
+from services.pipeline import Pipeline, PipelineConfig, truth_error, truth_positions
 from services.units import parse_band
 
 __all__ = ["add_track_parser", "run_track"]
@@ -37,21 +34,8 @@ def add_track_parser(sub: argparse._SubParsersAction) -> None:
         "Lengths are metres unless a unit is given (25mm).",
     )
     p.add_argument("data", help="UFF file with the plane-wave frames (in time order)")
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--calibration", help="UFF file: the target alone in water at r0 (fingerprint source)")
-    src.add_argument("--model", help="numerical fingerprint: 'point' or 'mirror:L=2mm,alpha=10'")
-    p.add_argument("--r0", help="calibration target position X,Z[,Y] (default: the position the file records)")
-    p.add_argument("--force", action="store_true", help="proceed when --r0 disagrees with the recorded position")
-    p.add_argument("--diameter", help="target size for the time gate (default: truth, else measured first arrival)")
-    p.add_argument("--gate", choices=("front", "none"), default="front", help="calibration time gate")
-    p.add_argument("--dataset", help="dataset name inside the UFF file(s) when there are several")
+    add_fingerprint_arguments(p)
     add_imaging_arguments(p, peaks_help="targets (tracks) per fingerprint")
-    p.add_argument(
-        "--max-pfa",
-        type=float,
-        default=DEFAULT_MAX_PFA,
-        help=f"report a detection only below this calibrated PFA (default {DEFAULT_MAX_PFA:g})",
-    )
     p.add_argument("--json", help="write detections and tracks per frame as JSON (SI units)")
     p.add_argument("--png", help="write a PNG of the tracks against the truth over the confocal image")
     p.set_defaults(func=run_track)
@@ -80,8 +64,6 @@ def run_track(args: argparse.Namespace) -> int:
     from fpcore.io import read_uff
 
     console = Console()
-    if not 0 < args.max_pfa <= 1:
-        raise ValueError(f"--max-pfa: expected 0 < p <= 1, got {args.max_pfa}")
     frames = read_uff(args.data, args.dataset)
     first = frames[0]
     band = parse_band(args.band) if args.band else first.default_band()
@@ -98,26 +80,13 @@ def run_track(args: argparse.Namespace) -> int:
         z_range=r["z_range"],
         spacing=r["spacing"],
     )
-    if args.calibration:
-        cal = read_uff(args.calibration, args.dataset)[0]
-        check_calibration(cal, first)
-        r0, diameter = _r0(args, cal)
-        spec = FingerprintSpec(
-            calibration_name(args.calibration, cal),
-            calibration=cal,
-            r0=tuple(r0),
-            diameter=diameter,
-            gate=args.gate == "front",
-        )
-    else:
-        spec = FingerprintSpec(args.model.partition(":")[0], model=args.model)
+    spec, cal = fingerprint_spec(args, first)
     pipe = Pipeline(cfg, [spec])
     pipe.setup(first)
     grid = pipe.grid
-    if args.calibration and args.r0:
-        warning = check_r0(np.asarray(spec.r0), cal, resolution(grid, first, band), force=args.force)
-        if warning:
-            console.print(f"[yellow]warning:[/yellow] {warning}")
+    warning = warn_r0(args, spec, cal, grid, first, band)
+    if warning:
+        console.print(f"[yellow]warning:[/yellow] {warning}")
     entry = pipe.entry(spec.name) or {}
     if entry.get("error"):
         raise ValueError(f"fingerprint {spec.name!r}: {entry['error']}")

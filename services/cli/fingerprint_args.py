@@ -1,0 +1,109 @@
+"""The fingerprint options shared by `fp locate` and `fp track`: a calibration (with its r0, diameter and
+time gate, checked against the file's own record) or a numerical model, and the decision threshold."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from fpcore import Acquisition, Grid
+from fpcore.geometry import to_xyz
+from fpcore.metrics import DEFAULT_MAX_PFA
+from services.models import check_calibration, check_r0, recorded_position
+from services.pipeline import resolution
+from services.registry import FingerprintSpec
+from services.units import parse_length, parse_position
+
+__all__ = ["add_fingerprint_arguments", "calibration_name", "calibration_r0", "fingerprint_spec", "warn_r0"]
+
+
+def add_fingerprint_arguments(p: argparse.ArgumentParser) -> None:
+    """--calibration | --model, --r0, --force, --diameter, --gate, --max-pfa, --dataset."""
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--calibration", help="UFF file: the target alone in water at r0 (fingerprint source)")
+    src.add_argument("--model", help="numerical fingerprint: 'point' or 'mirror:L=2mm,alpha=10' (alpha in degrees)")
+    p.add_argument(
+        "--r0",
+        help="calibration target position X,Z[,Y] (default: the position the calibration file "
+        "records); refused if it differs from that by more than a resolution cell",
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="proceed (with a warning) when --r0 disagrees with the calibration file's recorded position",
+    )
+    p.add_argument(
+        "--diameter",
+        help="target size for the time gate, e.g. 10mm (default: from the calibration's "
+        "truth, else measured from the calibration: the echo's first arrival)",
+    )
+    p.add_argument(
+        "--gate",
+        choices=("front", "none"),
+        default="front",
+        help="calibration time gate: 'front' (paper: after the front face's echo) or 'none'",
+    )
+    p.add_argument(
+        "--max-pfa",
+        type=float,
+        default=DEFAULT_MAX_PFA,
+        help=f"report a detection only below this calibrated false-alarm probability (default {DEFAULT_MAX_PFA:g})",
+    )
+    p.add_argument("--dataset", help="dataset name inside the UFF file(s) when there are several")
+
+
+def calibration_name(path: str, cal: Acquisition) -> str:
+    """The fingerprint's name: the target the calibration file records (so tracks and detections compare
+    with that target's truth), else the file's stem."""
+    targets = cal.ground_truth.targets
+    name = targets[0].name if targets else None
+    return name if name else Path(path).stem
+
+
+def calibration_r0(args: argparse.Namespace, cal: Acquisition) -> tuple[np.ndarray, float | None]:
+    """(r0, diameter) of the calibration: the options', else the file's; diameter None = measure it."""
+    recorded, d_rec = recorded_position(cal)
+    if args.r0:
+        v = parse_position(args.r0, "--r0")
+        r0 = to_xyz(v, 2) if len(v) == 2 else np.array([v[0], v[2], v[1]])  # X,Z,Y → (x, y, z)
+    elif recorded is not None:
+        r0 = recorded
+    else:
+        raise ValueError("--r0: the calibration file has no target position in its truth; give --r0 X,Z[,Y]")
+    if args.diameter:
+        d = parse_length(args.diameter, "--diameter")
+        if not d >= 0:
+            raise ValueError(f"--diameter: expected a length >= 0, got {args.diameter!r}")
+        return r0, d
+    return r0, d_rec
+
+
+def fingerprint_spec(args: argparse.Namespace, first: Acquisition) -> tuple[FingerprintSpec, Acquisition | None]:
+    """The dictionary entry of the options (and the calibration read, if any), checked against `first`."""
+    from fpcore.io import read_uff
+
+    if not 0 < args.max_pfa <= 1:
+        raise ValueError(f"--max-pfa: expected 0 < p <= 1, got {args.max_pfa}")
+    if not args.calibration:
+        return FingerprintSpec(args.model.partition(":")[0], model=args.model), None
+    cal = read_uff(args.calibration, args.dataset)[0]
+    check_calibration(cal, first)
+    r0, diameter = calibration_r0(args, cal)
+    name = calibration_name(args.calibration, cal)
+    return FingerprintSpec(name, calibration=cal, r0=tuple(r0), diameter=diameter, gate=args.gate == "front"), cal
+
+
+def warn_r0(
+    args: argparse.Namespace,
+    spec: FingerprintSpec,
+    cal: Acquisition | None,
+    grid: Grid,
+    first: Acquisition,
+    band: tuple[float, float],
+) -> str | None:
+    """`check_r0` for an --r0 given on the command line (ValueError unless --force; else the warning)."""
+    if cal is None or not args.r0 or spec.r0 is None:
+        return None
+    return check_r0(np.asarray(spec.r0), cal, resolution(grid, first, band), force=args.force)
