@@ -28,7 +28,7 @@ import fpcore
 from fpcore import Grid, detect
 from fpcore.acquisition import PlaneWaveData
 from fpcore.fingerprint import point_fingerprint
-from fpcore.metrics import DEFAULT_MAX_PFA, resolution_cell
+from fpcore.metrics import DEFAULT_MAX_PFA
 from fpcore.simulate import scenario
 
 ALPHAS = (0.5, 0.2, 0.1, 0.05, 0.01, 0.001)
@@ -71,9 +71,6 @@ def scenario_maps(
             fps = sc.fingerprints(imager.out_sines_for(first))
         if not with_targets:
             sc = sc.without_targets()
-        lam = sc.c0 / sc.probe.centre_frequency
-        ap, bw = sc.probe.aperture[0], sc.band[1] - sc.band[0]
-        res = resolution_cell(lam, ap, bw, sc.c0, 0.5 * (grid.z[0] + grid.z[-1]))
         for i in range(0, frames_per_seed * frame_step, frame_step):
             if len(rows) >= n_maps:
                 break
@@ -83,10 +80,7 @@ def scenario_maps(
             for tname, fp in fps.items():
                 if not with_targets and tname != next(iter(fps)):
                     continue  # one fingerprint per fog map: independent maps only
-                lev, vis = level.level(acq, pw, fp, res)
-                det = detect(
-                    imager.gamma(pw, fp), grid, lam, ap, bw, sc.c0, name=tname, level=lev, visible=vis, max_pfa=None
-                )[0]
+                det = fpcore.locate(imager, acq, fp, level, pw=pw, max_pfa=None).detections[0]
                 err = float(np.linalg.norm(np.array(det.position_m) - truth[tname])) if tname in truth else None
                 rows.append(
                     {

@@ -100,17 +100,16 @@ def resels_ellipsoid(semi_axes: np.ndarray) -> np.ndarray:
     return np.array([1.0, 4 * r, 2 * pi * r**2, 4 / 3 * pi * r**3])
 
 
-def max_tail(t: float, resels: np.ndarray, n_train: float = np.inf) -> float:
-    """P(max of the null field over a region with these resel counts > t), t on the T = γ²/γ_M² scale.
+def max_tail(t: float, resels: np.ndarray) -> float:
+    """P(max of the null field over a region with these resel counts > t), t on the exponential scale
+    (the significance S_eff of `NullModel`, which already carries the CA-CFAR law).
 
-    E[EC] of the excursion set at u = 2 t_eff (ν = 2), t_eff = n ln(1 + t/n) for a scale estimated from
-    n independent training cells; PFA = 1 − exp(−E[EC]), and 1 where E[EC] ≤ 0 (low thresholds, where
-    the expansion fails and the maximum exceeds t almost surely).
+    E[EC] of the excursion set at u = 2t (χ² field, ν = 2; Worsley 1994); PFA = 1 − exp(−E[EC]), and 1
+    where E[EC] ≤ 0 (low thresholds, where the expansion fails and the maximum exceeds t almost surely).
     """
     if not np.isfinite(t):
         return 0.0 if t > 0 else 1.0
-    t_eff = n_train * np.log1p(t / n_train) if np.isfinite(n_train) else float(t)
-    u = 2 * t_eff
+    u = 2 * float(t)
     ec = sum(float(r) * ec_density(u, d) for d, r in enumerate(resels))
     if ec <= 0:
         return 1.0

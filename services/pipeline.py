@@ -8,9 +8,9 @@ They are set up for the geometry of the first frame (or calibration) and again w
 thread-safe (one lock for processing and dictionary changes) and returns a :class:`FrameResult`;
 ``services.convert`` turns it into wire messages.
 
-No zenoh here: the processor node (``services.nodes.processor``) runs it on the bus, `fp locate`
-shares its imaging set-up (:func:`make_imager`), fingerprint construction and detection step
-(:func:`find_targets`, :func:`truth_error`), and tests and notebooks run it offline.
+No zenoh here: the processor node (``services.nodes.processor``) runs it on the bus, `fp track` runs
+it offline, `fp locate` shares its imaging set-up (:func:`make_imager`), fingerprint construction and
+per-frame steps (``fpcore.locate``: γ, null model, detections), and tests and notebooks run it too.
 """
 
 from __future__ import annotations
@@ -40,8 +40,6 @@ __all__ = [
     "PipelineConfig",
     "find_targets",
     "geometry_key",
-    "null_for",
-    "resolution",
     "make_imager",
     "truth_error",
     "truth_positions",
@@ -154,24 +152,6 @@ def truth_error(
     return min((float(np.linalg.norm(pos - t)) for t in cands), default=None)
 
 
-def resolution(grid: Grid, acq: Acquisition, band: tuple[float, float]) -> tuple[float, float]:
-    """(δρ_D at the grid's middle depth, c0/(2Δf)): the resolution cell of the null model (fpcore.locate)."""
-    return resolution_of(grid, acq, band)
-
-
-def null_for(
-    level: NullLevel | None,
-    gamma: np.ndarray,
-    grid: Grid,
-    acq: Acquisition,
-    pw: PlaneWaveData,
-    fp: Fingerprint,
-    band: tuple[float, float],
-) -> NullModel:
-    """The local null model of one γ-map with `level`'s physical null level (``fpcore.locate.null_of``)."""
-    return null_of(gamma, grid, acq, pw, fp, band, level)
-
-
 def find_targets(
     gamma: np.ndarray,
     grid: Grid,
@@ -184,7 +164,7 @@ def find_targets(
     max_pfa: float | None = DEFAULT_MAX_PFA,
 ) -> list[Detection]:
     """Detections in one γ-map (``fpcore.detect``: C_γ, C, calibrated PFA, Cramér–Rao precision) against
-    the map's null model (`null_for`; default: the CFAR alone), kept when PFA < ``max_pfa``;
+    the map's null model (``fpcore.locate.null_of``; default: the CFAR alone), kept when PFA < ``max_pfa``;
     ``interior`` skips maxima within the diffraction resolution of the grid's border."""
     lam = acq.c0 / acq.probe.centre_frequency
     return detect(
@@ -268,7 +248,7 @@ class Pipeline:
                     try:
                         imager.template(pw, entry.fp)
                         # aperture factor (cached) and the null level's NUFFT plan, before the first frame is timed
-                        self._level.level(acq, pw, entry.fp, resolution(grid, acq, band))
+                        self._level.level(acq, pw, entry.fp, resolution_of(grid, acq, band))
                     except ValueError as exc:
                         entry.fp, entry.error = None, str(exc)
             self.setup_s += time.perf_counter() - t0
@@ -401,7 +381,7 @@ class Pipeline:
             t2 = time.perf_counter()
             grid = imager.grid
             truths = truth_positions(acq.ground_truth)
-            nulls = {n: null_for(self._level, g, grid, acq, pw, fps[n], band) for n, g in gammas.items()}
+            nulls = {n: null_of(g, grid, acq, pw, fps[n], band, self._level) for n, g in gammas.items()}
             dets: list[tuple[Detection, float | None]] = []
             for name, g in gammas.items():
                 for d in find_targets(g, grid, acq, band, name, cfg.n_peaks, cfg.interior, nulls[name], cfg.max_pfa):

@@ -8,11 +8,10 @@ import numpy as np
 import pytest
 
 import fpcore
-from fpcore import Grid, detect
+from fpcore import Grid
 from fpcore.acquisition import PlaneWaveData
 from fpcore.background import NullPower, envelope_spectrum
 from fpcore.fingerprint import first_arrival_diameter, point_fingerprint
-from fpcore.metrics import resolution_cell
 from fpcore.simulate import scenario
 
 
@@ -62,11 +61,8 @@ def cylinder_setup():
 
 
 def _detect(sc, grid, imager, level, acq, fp, name, max_pfa=1e-3):
-    pw = imager.plane_waves(acq)
-    lam = sc.c0 / sc.probe.centre_frequency
-    ap, bw = sc.probe.aperture[0], sc.band[1] - sc.band[0]
-    lev, vis = level.level(acq, pw, fp, resolution_cell(lam, ap, bw, sc.c0, 0.5 * (grid.z[0] + grid.z[-1])))
-    return detect(imager.gamma(pw, fp), grid, lam, ap, bw, sc.c0, name=name, level=lev, visible=vis, max_pfa=max_pfa)
+    assert fp.name == name
+    return fpcore.locate(imager, acq, fp, level, max_pfa=max_pfa).detections
 
 
 def test_targets_found_on_the_default_grid_without_a_depth_window(cylinder_setup) -> None:
@@ -98,3 +94,27 @@ def test_fog_only_frames_give_no_detection(cylinder_setup) -> None:
         bool(_detect(sc, grid, imager, level, fog.frame(i), fps["cylinder1"], "cylinder1")) for i in range(0, 8, 2)
     ]
     assert not any(found)
+
+
+def test_aperture_factor_falls_as_the_fingerprint_leaves_the_array() -> None:
+    """A(r) (fpcore.background.NullLevel): E|N(r)|² for i.i.d. element noise, normalised to 1. Moved far
+    to the side of a 13 mm aperture, a fingerprint's echo misses the array: A drops there, and those
+    nodes are not searched."""
+    from fpcore import PlaneWaveSequence, Probe
+    from fpcore.born import born_points
+
+    probe = Probe.linear(48, 0.3e-3, 2.5e6, 1.5e6)
+    seq = PlaneWaveSequence.from_angles(np.linspace(-10, 10, 5))
+    acq = born_points(probe, seq, np.array([[0.0, 0.0, 20e-3]]), np.ones(1), n_t=600)
+    band = acq.default_band()
+    grid = Grid.regular((-25e-3, 25e-3), (15e-3, 25e-3), 0.3e-3)
+    imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=band))
+    pw = imager.plane_waves(acq)
+    fp = point_fingerprint(pw.freqs, pw.out_sines, pw.in_sines, pw.c0, np.array([0.0, 0.0, 20e-3]))
+    level = fpcore.NullLevel(imager, n_noise=8)
+    a = level.aperture(acq, pw, fp, (1.0e-3, 0.5e-3))
+    assert a.min() >= 0 and a.max() == pytest.approx(1.0)
+    centre, edge = a[grid.x.size // 2].mean(), a[:5].mean()
+    assert edge < 0.5 * centre
+    _, visible = level.level(acq, pw, fp, (1.0e-3, 0.5e-3))
+    assert visible[grid.x.size // 2].all() and not visible.all()

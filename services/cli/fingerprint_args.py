@@ -10,9 +10,9 @@ import numpy as np
 
 from fpcore import Acquisition, Grid
 from fpcore.geometry import to_xyz
+from fpcore.locate import resolution_of
 from fpcore.metrics import DEFAULT_MAX_PFA
 from services.models import check_calibration, check_r0, recorded_position
-from services.pipeline import resolution
 from services.registry import FingerprintSpec
 from services.units import parse_length, parse_position
 
@@ -80,14 +80,17 @@ def calibration_r0(args: argparse.Namespace, cal: Acquisition) -> tuple[np.ndarr
     return r0, d_rec
 
 
-def fingerprint_spec(args: argparse.Namespace, first: Acquisition) -> tuple[FingerprintSpec, Acquisition | None]:
-    """The dictionary entry of the options (and the calibration read, if any), checked against `first`."""
+def fingerprint_spec(
+    args: argparse.Namespace, first: Acquisition, model_r0: tuple[float, float, float] | None = None
+) -> tuple[FingerprintSpec, Acquisition | None]:
+    """The dictionary entry of the options (and the calibration read, if any), checked against `first`;
+    a model is centred at `model_r0` (None: the grid's centre)."""
     from fpcore.io import read_uff
 
     if not 0 < args.max_pfa <= 1:
         raise ValueError(f"--max-pfa: expected 0 < p <= 1, got {args.max_pfa}")
     if not args.calibration:
-        return FingerprintSpec(args.model.partition(":")[0], model=args.model), None
+        return FingerprintSpec(args.model.partition(":")[0], model=args.model, r0=model_r0), None
     cal = read_uff(args.calibration, args.dataset)[0]
     check_calibration(cal, first)
     r0, diameter = calibration_r0(args, cal)
@@ -106,4 +109,4 @@ def warn_r0(
     """`check_r0` for an --r0 given on the command line (ValueError unless --force; else the warning)."""
     if cal is None or not args.r0 or spec.r0 is None:
         return None
-    return check_r0(np.asarray(spec.r0), cal, resolution(grid, first, band), force=args.force)
+    return check_r0(np.asarray(spec.r0), cal, resolution_of(grid, first, band), force=args.force)

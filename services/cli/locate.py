@@ -15,13 +15,12 @@ from pathlib import Path
 
 import numpy as np
 
-from fpcore import Acquisition, Fingerprint, NullLevel, moving_fingerprint
+from fpcore import Acquisition, Fingerprint, NullLevel, locate, moving_fingerprint
 from fpcore.geometry import to_xyz
 from services.cli.fingerprint_args import add_fingerprint_arguments, fingerprint_spec, warn_r0
 from services.cli.imaging import add_imaging_arguments, grid_ranges
 from services.models import build_fingerprint
-from services.pipeline import find_targets, make_imager, null_for, truth_error, truth_positions
-from services.registry import FingerprintSpec
+from services.pipeline import make_imager, truth_error, truth_positions
 from services.units import parse_band
 
 __all__ = ["add_locate_parser", "run_locate"]
@@ -98,20 +97,17 @@ def run_locate(args: argparse.Namespace) -> int:
     band = parse_band(args.band) if args.band else first.default_band()
     imager = make_imager(first, band, ranges=grid_ranges(args), n_freq=args.n_freq, n_out=args.n_out)
     grid = imager.grid
-    spec, cal = fingerprint_spec(args, first)
+    spec, cal = fingerprint_spec(args, first, model_r0=(0.0, 0.0, 0.0))
     warning = warn_r0(args, spec, cal, grid, first, band)
     if warning:
         console.print(f"[yellow]warning:[/yellow] {warning}")
-    diameter = spec.diameter
-    if spec.model is not None:
-        spec = FingerprintSpec(spec.name, model=spec.model, r0=(0.0, 0.0, 0.0))
     fp = build_fingerprint(spec, first, None, imager, band, args.n_freq, args.svd_threshold)
     if args.calibration:
         how = (
             "no gate"
             if args.gate == "none"
             else f"gate after the front face, d = {fp.state['diameter_m'] * 1e3:.1f} mm"
-            + (" (measured: first arrival)" if diameter is None else "")
+            + (" (measured: first arrival)" if spec.diameter is None else "")
         )
         console.print(
             f"fingerprint from {args.calibration}: r0 = {np.round(fp.r0 * 1e3, 2)} mm, {how}, "
@@ -129,11 +125,10 @@ def run_locate(args: argparse.Namespace) -> int:
         task = progress.add_task("γ-maps", total=len(frames))
         for acq in frames:
             pw = imager.plane_waves(acq)
-            gamma = imager.gamma(pw, fp)
-            nm = null_for(level, gamma, grid, acq, pw, fp, band)
-            dets = find_targets(
-                gamma, grid, acq, band, fp.name, args.targets, interior=args.skip_border, null=nm, max_pfa=args.max_pfa
+            found = locate(
+                imager, acq, fp, level, pw=pw, n_peaks=args.targets, max_pfa=args.max_pfa, interior=args.skip_border
             )
+            gamma, dets = found.gamma, found.detections
             truths = truth_positions(acq.ground_truth)
             row = {"frame_index": acq.frame_index, "timestamp_s": acq.timestamp, "detections": []}
             for d in dets:
