@@ -214,10 +214,11 @@ class RFFrame(Message):
     """One plane-wave acquisition R(u_out, θ_in, t) (key ``fp/<rig>/rf``); sample n at t0 + n/fs.
 
     1.1 added ``prf`` (optional): without it (1.0 writers) the transmit times are unknown and the
-    motion-aware fingerprints cannot be used."""
+    motion-aware fingerprints cannot be used. 1.2 added ``rf_scale`` (optional): int16 RF, as scanners
+    deliver it, stands for ``rf × rf_scale`` (:meth:`to_acquisition` applies it; docs/wire.md)."""
 
     schema_name: Literal["RFFrame"] = "RFFrame"
-    schema_version: str = Field(default="1.1", pattern=VERSION_PATTERN, description="MAJOR.MINOR.")
+    schema_version: str = Field(default="1.2", pattern=VERSION_PATTERN, description="MAJOR.MINOR.")
     frame_index: int = Field(ge=0)
     timestamp: float = Field(description="Acquisition time, s (source clock).")
     fs: float = Field(gt=0, description="Sampling frequency, Hz.")
@@ -237,6 +238,12 @@ class RFFrame(Message):
         description="Pulse repetition frequency, Hz: the transmits fire in "
         "order every 1/prf (None: unknown). Since 1.1.",
     )
+    rf_scale: float | None = Field(
+        default=None,
+        gt=0,
+        description="Physical value of one integer step of int16 RF (RF = rf × rf_scale; None: 1). "
+        "Only with int16 RF. Since 1.2.",
+    )
 
     @model_validator(mode="after")
     def _check(self) -> RFFrame:
@@ -247,6 +254,8 @@ class RFFrame(Message):
             )
         if np.any(np.sum(self.sines**2, axis=1) >= 1.0):
             raise ArrayFieldError("sines", "expected s_x² + s_y² < 1 for every transmit")
+        if self.rf_scale is not None and self.rf.dtype != np.int16:
+            raise ArrayFieldError("rf_scale", f"expected only with int16 RF, got RF of dtype {self.rf.dtype}")
         return self
 
     @classmethod
@@ -269,13 +278,15 @@ class RFFrame(Message):
         )
 
     def to_acquisition(self) -> Acquisition:
-        """As an ``fpcore.acquisition.Acquisition`` (arrays are shared, not copied)."""
+        """As an ``fpcore.acquisition.Acquisition`` (arrays are shared, not copied; int16 RF with an
+        ``rf_scale`` becomes float32 RF × rf_scale)."""
         from fpcore.acquisition import Acquisition, PlaneWaveSequence
         from fpcore.acquisition import Probe as CoreProbe
 
         p = self.probe
+        rf = self.rf if self.rf_scale is None else self.rf.astype(np.float32) * np.float32(self.rf_scale)
         return Acquisition(
-            rf=self.rf,
+            rf=rf,
             fs=self.fs,
             t0=self.t0,
             c0=self.c0,

@@ -242,7 +242,7 @@ def test_layout_alignment_and_header(kind: str) -> None:
     assert len(payload) == start + end
     h = decode_header(hdr)
     assert h.schema_name == msg.schema_name and h.schema_version == (
-        "1.1" if kind.startswith(("RFFrame", "Detections", "Tracks")) else "1.0"
+        "1.2" if kind.startswith("RFFrame") else "1.1" if kind.startswith(("Detections", "Tracks")) else "1.0"
     )
     assert [a.name for a in h.arrays] == [d["name"] for d in header["arrays"]]
     assert decode_header(payload) == h
@@ -569,7 +569,7 @@ def test_prf_travels_and_frames_without_it_still_decode() -> None:
     assert acq.sequence.prf is None and RFFrame.from_acquisition(acq).prf is None
     moving = dataclasses.replace(acq, sequence=PlaneWaveSequence(acq.sequence.sines, prf=4e3))
     msg = RFFrame.from_acquisition(moving)
-    assert msg.prf == 4e3 and msg.schema_version == "1.1" and RFFrame.version() == (1, 1)
+    assert msg.prf == 4e3 and msg.schema_version == "1.2" and RFFrame.version() == (1, 2)
     back = decode(encode(msg)).to_acquisition()
     assert back.sequence.prf == 4e3
     np.testing.assert_allclose(back.sequence.transmit_times(), moving.sequence.transmit_times())
