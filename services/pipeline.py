@@ -32,7 +32,7 @@ from fpcore.metrics import DEFAULT_MAX_PFA, Detection
 from fpcore.tracking import Tracker, TrackerConfig, TrackState
 from fpcore.truth import Truth
 from services.models import build_fingerprint
-from services.registry import Entry, FingerprintSpec
+from services.registry import Entry, FingerprintSpec, check_setup_size, set_changes
 
 __all__ = [
     "FrameResult",
@@ -292,59 +292,81 @@ class Pipeline:
             return None if e is None else e.describe()
 
     def add(self, spec: FingerprintSpec) -> dict[str, Any]:
-        """Add or replace a dictionary entry (built now if a frame or the calibration gives the geometry)."""
+        """Add or replace a dictionary entry (built now if a frame or the calibration gives the geometry).
+        Transactional: if the entry cannot be built (or a first set-up fails), the dictionary and the set-up
+        stay as they were and the error is raised."""
         with self.lock:
-            prev = self._entries.get(spec.name)
-            entry = Entry(spec)
-            self._entries[spec.name] = entry
-            ref = next((a for a in (self._last_acq, self._ref, spec.calibration) if a is not None), None)
-            if ref is not None:
-                if self._imager is None:
-                    self.setup(ref)
-                else:
-                    self._build(entry, ref, self._imager.plane_waves(ref))
-            if entry.error is not None:
-                if prev is None:
-                    del self._entries[spec.name]
-                else:
-                    self._entries[spec.name] = prev
-                raise ValueError(entry.error)
+            saved = self._snapshot()
+            try:
+                prev = self._entries.get(spec.name)
+                entry = Entry(spec)
+                self._entries = {**self._entries, spec.name: entry}
+                ref = next((a for a in (self._last_acq, self._ref, spec.calibration) if a is not None), None)
+                if ref is not None:
+                    if self._imager is None:
+                        self._entries = {n: e if n == spec.name else Entry(e.spec) for n, e in self._entries.items()}
+                        self.setup(ref)
+                    else:
+                        self._build(entry, ref, self._imager.plane_waves(ref))
+                if entry.error is not None:
+                    raise ValueError(entry.error)
+            except BaseException:
+                self._restore(saved)
+                raise
             if prev is not None and prev.fp is not None and self._imager is not None:
                 self._imager.forget(prev.fp)
             return entry.describe()
 
     def remove(self, name: str) -> None:
         with self.lock:
-            entry = self._entries.pop(name, None)
+            entry = self._entries.get(name)
             if entry is None:
                 raise KeyError(name)
+            self._entries = {n: e for n, e in self._entries.items() if n != name}
             if entry.fp is not None and self._imager is not None:
                 self._imager.forget(entry.fp)
 
+    #: What a set-up replaces (rebinds, never mutates in place): saved and restored by the transactions.
+    _STATE = ("cfg", "_entries", "_imager", "_level", "_tracker", "_geom", "_band", "_ref", "setup_s")
+
+    def _snapshot(self) -> dict[str, Any]:
+        return {k: getattr(self, k) for k in self._STATE}
+
+    def _restore(self, saved: dict[str, Any]) -> None:
+        for k, v in saved.items():
+            setattr(self, k, v)
+
     def set_params(self, params: dict[str, Any]) -> None:
-        """Change band, n_freq, svd_threshold or n_peaks; fingerprints are rebuilt."""
-        allowed = {"band_hz", "n_freq", "svd_threshold", "n_peaks"}
-        unknown = set(params) - allowed
-        if unknown:
-            raise ValueError(f"set: unknown parameter(s) {sorted(unknown)}; expected some of {sorted(allowed)}")
-        changes: dict[str, Any] = {}
-        if "band_hz" in params:
-            b = params["band_hz"]
-            if not (isinstance(b, list) and len(b) == 2 and 0 <= float(b[0]) < float(b[1])):
-                raise ValueError(f"set: band_hz must be [f_min, f_max] with 0 <= f_min < f_max, got {b!r}")
-            changes["band"] = (float(b[0]), float(b[1]))
-        if "n_freq" in params:
-            changes["n_freq"] = None if params["n_freq"] is None else int(params["n_freq"])
-        if "svd_threshold" in params:
-            changes["svd_threshold"] = float(params["svd_threshold"])
-        if "n_peaks" in params:
-            changes["n_peaks"] = int(params["n_peaks"])
+        """Change band, n_freq, svd_threshold or n_peaks; fingerprints are rebuilt. Transactional: the
+        request is validated, its set-up size checked against the memory budget, and the set-up (imager,
+        null level, tracker, every fingerprint, on fresh entries) rebuilt on the last frame's geometry;
+        the pipeline keeps it only if that succeeds and every entry built before still builds. Otherwise
+        ValueError (or MemoryError) is raised and the pipeline is exactly as it was (same configuration,
+        set-up objects and fingerprints). Before any frame or calibration the settings are only
+        validated and stored (the first frame sets up with them)."""
+        changes = set_changes(params)
         with self.lock:
-            self.cfg = replace(self.cfg, **changes)
-            self._geom = None  # rebuild at the next frame …
+            new_cfg = replace(self.cfg, **changes)  # PipelineConfig.__post_init__ checks the ranges
             ref = self._last_acq if self._last_acq is not None else self._ref
-            if ref is not None:  # … or now, to report errors in the reply
+            if ref is None:
+                self.cfg, self._geom = new_cfg, None
+                return
+            check_setup_size(ref, new_cfg.band or ref.default_band(), new_cfg.n_freq)
+            saved = self._snapshot()
+            built = [n for n, e in self._entries.items() if e.fp is not None]
+            try:
+                self.cfg = new_cfg
+                self._entries = {n: Entry(e.spec) for n, e in self._entries.items()}  # the old ones stay intact
                 self.setup(ref)
+                lost = {n: self._entries[n].error for n in built if self._entries[n].fp is None}
+                if lost:
+                    raise ValueError(
+                        "set: refused, these fingerprints would not build: "
+                        + "; ".join(f"{n}: {err}" for n, err in lost.items())
+                    )
+            except BaseException:
+                self._restore(saved)
+                raise
 
     def params(self) -> dict[str, Any]:
         c = self.cfg

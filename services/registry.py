@@ -18,6 +18,11 @@ Protocol (server: :class:`DictionaryServer`, client: :func:`dictionary_request`)
 * ``get fp/<rig>/dictionary/set`` with JSON ``{"band_hz": [lo, hi], "n_freq": n, "svd_threshold": t,
   "n_peaks": k}``: fingerprints are rebuilt.
 
+Changes are transactional: ``add`` and ``set`` are validated and built on the side (``set`` also has its
+set-up size checked against a memory limit first, :func:`check_setup_size`); the host keeps them only
+on success. A refused change answers ``ok: false`` with the reason and leaves the dictionary and its
+parameters exactly as they were.
+
 Queries are answered one at a time on the server's own thread (a rebuild takes seconds; the zenoh
 callback only queues). zenoh is not imported here: the server and the client use the session they
 are given.
@@ -27,6 +32,8 @@ from __future__ import annotations
 
 import json
 import logging
+import math
+import os
 import queue
 import threading
 import time
@@ -45,11 +52,15 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "RESERVED",
+    "SET_PARAMS",
     "DictionaryHost",
     "DictionaryServer",
     "Entry",
     "FingerprintSpec",
+    "check_setup_size",
     "dictionary_request",
+    "memory_limit_bytes",
+    "set_changes",
     "spec_from_request",
 ]
 
@@ -57,6 +68,12 @@ log = logging.getLogger("fp.registry")
 
 #: Names an entry cannot take (they are operations or wildcards).
 RESERVED = frozenset({"list", "add", "remove", "set", "**", "*"})
+
+#: The parameters a ``set`` query may change.
+SET_PARAMS = ("band_hz", "n_freq", "svd_threshold", "n_peaks")
+
+#: Share of the machine's physical memory one set-up may ask for (:func:`check_setup_size`).
+SETUP_MEMORY_FRACTION = 0.5
 
 
 @dataclass
@@ -142,6 +159,80 @@ def spec_from_request(name: str, payload: bytes, attachment: bytes) -> Fingerpri
     return FingerprintSpec(name, model=doc["model"], r0=None if r0 is None else tuple(float(v) for v in r0))
 
 
+def _number(name: str, v: Any) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise ValueError(f"set: {name} must be a finite number, got {v!r}")
+    return float(v)
+
+
+def _count(name: str, v: Any) -> int:
+    x = _number(name, v)
+    if x != int(x) or x < 1:
+        raise ValueError(f"set: {name} must be an integer >= 1, got {v!r}")
+    return int(x)
+
+
+def set_changes(params: Any) -> dict[str, Any]:
+    """The PipelineConfig fields a ``set`` request changes (``{"band_hz": [lo, hi], "n_freq": n,
+    "svd_threshold": t, "n_peaks": k}``; ``n_freq`` null: every bin), each checked for type and range;
+    ValueError names the parameter, what was expected and what was found."""
+    if not isinstance(params, dict):
+        raise ValueError(f"set: expected a JSON object of parameters, got {type(params).__name__}")
+    unknown = set(params) - set(SET_PARAMS)
+    if unknown:
+        raise ValueError(f"set: unknown parameter(s) {sorted(unknown)}; expected some of {sorted(SET_PARAMS)}")
+    changes: dict[str, Any] = {}
+    if "band_hz" in params:
+        b = params["band_hz"]
+        if not (isinstance(b, (list, tuple)) and len(b) == 2):
+            raise ValueError(f"set: band_hz must be [f_min, f_max] in Hz, got {b!r}")
+        lo, hi = _number("band_hz", b[0]), _number("band_hz", b[1])
+        if not 0 <= lo < hi:
+            raise ValueError(f"set: band_hz must be [f_min, f_max] with 0 <= f_min < f_max, got {b!r}")
+        changes["band"] = (lo, hi)
+    if "n_freq" in params:
+        changes["n_freq"] = None if params["n_freq"] is None else _count("n_freq", params["n_freq"])
+    if "svd_threshold" in params:
+        t = _number("svd_threshold", params["svd_threshold"])
+        if not 0 < t <= 1:
+            raise ValueError(f"set: svd_threshold must be in (0, 1], got {t:g}")
+        changes["svd_threshold"] = t
+    if "n_peaks" in params:
+        changes["n_peaks"] = _count("n_peaks", params["n_peaks"])
+    return changes
+
+
+def memory_limit_bytes() -> int:
+    """What one set-up may allocate: :data:`SETUP_MEMORY_FRACTION` of the physical memory (8 GiB when the
+    platform does not say)."""
+    try:
+        total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        total = 16 << 30
+    return int(total * SETUP_MEMORY_FRACTION)
+
+
+def check_setup_size(acq: Acquisition, band: tuple[float, float], n_freq: int | None, limit: int | None = None) -> int:
+    """Estimated bytes of the spectrum stage of a set-up for frames like ``acq`` (``Acquisition.spectrum``:
+    the zero-padded float32 record and its complex64 half spectrum, n_fft = max(N_t, n_freq fs / band)
+    or 2 N_t, plus three copies of the kept bins); ValueError before anything is allocated when it
+    exceeds ``limit`` (default :func:`memory_limit_bytes`)."""
+    n_t, fs = int(acq.n_samples), float(acq.fs)
+    n_ch = int(acq.probe.n_elements) * int(acq.sequence.n_waves)
+    width = float(band[1]) - float(band[0])
+    n_fft = 2 * n_t if n_freq is None else max(n_t, math.ceil(n_freq * fs / width))
+    kept = min(n_fft // 2 + 1, math.ceil(width / fs * n_fft) + 1) if n_freq is None else n_freq
+    need = n_ch * (8 * n_fft + 24 * kept)
+    limit = memory_limit_bytes() if limit is None else limit
+    if need > limit:
+        raise ValueError(
+            f"set: refused, n_freq={n_freq} over the band {band[0] / 1e6:g}–{band[1] / 1e6:g} MHz needs "
+            f"about {need / 2**30:.1f} GiB for the spectrum of a {n_ch}-channel frame; the limit is "
+            f"{limit / 2**30:.1f} GiB"
+        )
+    return need
+
+
 class DictionaryServer:
     """The queryable ``fp/<rig>/dictionary/**`` of a host, answered on a thread of its own."""
 
@@ -210,10 +301,15 @@ class DictionaryServer:
                 return False, {"ok": False, "error": f"remove: no entry {name!r}; have {host.names}"}, None
             return True, {"ok": True, "removed": name, "entries": host.names}, None
         if op == "set":
-            params = json.loads(payload.decode() or "{}")
-            if not isinstance(params, dict):
-                raise ValueError("set: expected a JSON object of parameters")
-            host.set_params(params)
+            try:
+                params = json.loads(payload.decode() or "{}")
+            except (UnicodeDecodeError, json.JSONDecodeError):
+                raise ValueError("set: expected a JSON object of parameters") from None
+            try:
+                host.set_params(params)  # transactional: on failure the host is as it was
+            except (ValueError, MemoryError) as exc:
+                error = str(exc) if isinstance(exc, ValueError) else f"set: refused, out of memory: {exc}"
+                return False, {"ok": False, "error": error, "params": host.describe()["params"]}, None
             return True, {"ok": True, **host.describe()}, None
         name = "/".join(parts)
         entry = host.entry(name)

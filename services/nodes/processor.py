@@ -210,7 +210,9 @@ class Processor(Node):
         self.pipeline.remove(name)
 
     def set_params(self, params: dict[str, Any]) -> None:
-        """Change band, n_freq, svd_threshold or n_peaks; fingerprints are rebuilt."""
+        """Change band, n_freq, svd_threshold or n_peaks; fingerprints are rebuilt. Transactional
+        (``Pipeline.set_params``): a refused change raises and leaves the node's set-up as it was, so
+        the frames that follow are processed as before."""
         self.pipeline.set_params(params)
 
     def describe(self) -> dict[str, Any]:
