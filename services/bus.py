@@ -11,6 +11,14 @@ not up yet is retried in the background; ``connect/timeout_ms`` bounds ``open()`
 dead endpoint without it can hang). Across machines: give ``--connect`` endpoints, ``--mode router``
 for a relay, or a JSON5 file (``--zenoh-config``; explicit flags override its fields).
 
+Exposure (docs/wire.md, "Securing the bus"): a node listens on loopback unless told otherwise. A listen
+endpoint on any other address — ``tcp/0.0.0.0:…``, a host name, an interface address, or zenoh's
+own default ``tcp/[::]:…`` when a config file gives none — is refused with one line unless the node
+is started with ``--allow-remote`` (``BusConfig.allow_remote``); then it prints a warning, which
+also says when the session has no user/password authentication or a link is not TLS. Access control,
+authentication and TLS are zenoh's own (``transport/auth/usrpwd``, ``access_control``, ``tls/``
+endpoints), configured in the ``--zenoh-config`` file; ``deploy/zenoh/`` holds an example.
+
 Shared memory (stack notes): zenoh 1.x moves messages ≥ 3 KB through SHM between processes on one
 host, from a 16 MiB pool by default — too small for 10–50 MB frames. ``shm="auto"`` (default) keeps
 SHM on with a 512 MiB pool when /dev/shm has ≥ 2 GiB free (measured ≈ 2× TCP loopback throughput),
@@ -33,12 +41,15 @@ import argparse
 import contextlib
 import ctypes
 import ctypes.util
+import ipaddress
 import json
 import os
 import queue
+import re
 import shutil
 import signal
 import socket
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -53,13 +64,16 @@ from services.wire import encode_with_header
 __all__ = [
     "DEFAULT_HUB",
     "BusConfig",
+    "bus_warnings",
     "FifoSlot",
     "LatestSlot",
     "add_bus_arguments",
     "bus_from_args",
     "free_port",
+    "listen_endpoints",
     "open_session",
     "put_message",
+    "remote_endpoints",
     "sample_bytes",
     "sample_publish_time",
     "stop_on_signals",
@@ -88,6 +102,7 @@ class BusConfig:
     config_file: str | None = None
     shm: str | None = "auto"  # "auto" | "off" | pool size in MiB
     connect_timeout_ms: int | None = 2000
+    allow_remote: bool = False  # listen on non-loopback addresses (with a warning); refused otherwise
 
     def shm_pool_bytes(self) -> int | None:
         """Pool size to configure, or None to disable SHM (see the module doc)."""
@@ -109,11 +124,63 @@ class BusConfig:
         return mib << 20
 
 
+_LOOPBACK_NAMES = {"localhost", "ip6-localhost", "ip6-loopback"}
+_LOCAL_PROTOCOLS = {"unixsock-stream", "unixpipe"}
+
+
+def _is_loopback(endpoint: str) -> bool:
+    """True for an endpoint only this host can reach: a loopback address or name, or a Unix socket/pipe."""
+    proto, _, rest = endpoint.partition("/")
+    if proto in _LOCAL_PROTOCOLS:
+        return True
+    address = rest.split("?", 1)[0].split("#", 1)[0]
+    host = address.rsplit(":", 1)[0] if ":" in address else address
+    host = host.strip("[]").lower()
+    if host in _LOOPBACK_NAMES:
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False  # a host name, or no address at all: it may be reachable from elsewhere
+
+
+def listen_endpoints(cfg: zenoh.Config) -> list[str]:
+    """The endpoints a session of ``cfg`` will listen on, zenoh's per-mode defaults included (a router
+    with no ``listen/endpoints`` listens on ``tcp/[::]:7447``, every interface)."""
+    mode = json.loads(cfg.get_json("mode") or "null") or "peer"
+    eps = json.loads(cfg.get_json("listen/endpoints") or "null")
+    if isinstance(eps, dict):
+        eps = eps.get(mode, [])
+    return [str(e) for e in eps or []]
+
+
+def remote_endpoints(endpoints: list[str]) -> list[str]:
+    """The endpoints of ``endpoints`` that other hosts may reach (not loopback, not a local socket)."""
+    return [e for e in endpoints if not _is_loopback(e)]
+
+
+def bus_warnings(cfg: zenoh.Config) -> list[str]:
+    """What a session of ``cfg`` exposes: remote listeners, and then whether they lack authentication or TLS."""
+    remote = remote_endpoints(listen_endpoints(cfg))
+    if not remote:
+        return []
+    notes = [f"listening on {', '.join(remote)}: other hosts can reach this node"]
+    if json.loads(cfg.get_json("transport/auth/usrpwd/dictionary_file") or "null") is None:
+        notes.append("no user/password authentication (transport/auth/usrpwd/dictionary_file)")
+    plain = [e for e in remote if e.partition("/")[0] not in ("tls", "quic")]
+    if plain:
+        notes.append(f"not encrypted ({', '.join(plain)}; use tls/ endpoints)")
+    if not json.loads(cfg.get_json("access_control/enabled") or "false"):
+        notes.append("no access control rules")
+    return notes
+
+
 def zenoh_config(bus: BusConfig) -> zenoh.Config:
-    """The zenoh.Config of ``bus`` (file first, then the explicit settings)."""
+    """The zenoh.Config of ``bus`` (file first, then the explicit settings). ValueError (one line) for an
+    unreadable file, or a listen endpoint off loopback without ``allow_remote``."""
     if bus.mode not in (None, "peer", "router", "client"):
         raise ValueError(f"--mode: expected peer, router or client, got {bus.mode!r}")
-    cfg = zenoh.Config.from_file(bus.config_file) if bus.config_file else zenoh.Config()
+    cfg = _config_file(bus.config_file) if bus.config_file else zenoh.Config()
     if bus.mode is not None:
         cfg.insert_json5("mode", json.dumps(bus.mode))
     mode = json.loads(cfg.get_json("mode") or "null") or "peer"
@@ -125,15 +192,40 @@ def zenoh_config(bus: BusConfig) -> zenoh.Config:
         cfg.insert_json5("connect/timeout_ms", str(int(bus.connect_timeout_ms or 2000)))
     if bus.multicast is not None:
         cfg.insert_json5("scouting/multicast/enabled", json.dumps(bool(bus.multicast)))
-    if bus.shm is None and bus.config_file:
-        return cfg  # shared memory as the file says
-    pool = bus.shm_pool_bytes()
-    if pool is None:
-        cfg.insert_json5("transport/shared_memory/enabled", "false")
-    else:
-        cfg.insert_json5("transport/shared_memory/enabled", "true")
-        cfg.insert_json5("transport/shared_memory/transport_optimization/pool_size", str(pool))
+    if bus.shm is not None or not bus.config_file:  # else shared memory as the file says
+        pool = bus.shm_pool_bytes()
+        if pool is None:
+            cfg.insert_json5("transport/shared_memory/enabled", "false")
+        else:
+            cfg.insert_json5("transport/shared_memory/enabled", "true")
+            cfg.insert_json5("transport/shared_memory/transport_optimization/pool_size", str(pool))
+    remote = remote_endpoints(listen_endpoints(cfg)) if mode != "client" else []
+    if remote and not bus.allow_remote:
+        raise ValueError(
+            f"--listen: {', '.join(remote)} is not a loopback address (other hosts could connect); pass "
+            "--allow-remote to accept that, after securing the bus (docs/wire.md, 'Securing the bus')"
+        )
     return cfg
+
+
+def _config_file(path: str) -> zenoh.Config:
+    if not os.path.isfile(path):
+        raise ValueError(f"--zenoh-config: no such file {path!r}")
+    try:
+        return zenoh.Config.from_file(path)
+    except zenoh.ZError as exc:
+        raise ValueError(f"--zenoh-config {path}: not a valid zenoh configuration: {_zerror_line(exc)}") from None
+
+
+def _zerror_line(exc: BaseException) -> str:
+    """One line from a zenoh error: no Rust source location; a JSON5 syntax error as its position and message."""
+    text = re.sub(r"\s+at /\S+\.rs:\d+\.?", "", str(exc)).strip()
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    loc = next((ln[3:].strip() for ln in lines if ln.startswith("-->")), None)
+    msg = next((ln[1:].strip() for ln in lines if ln.startswith("=")), None)
+    if loc and msg:
+        return f"at line:column {loc}: {msg}"
+    return " ".join(lines) or type(exc).__name__
 
 
 _log_once = threading.Lock()
@@ -148,7 +240,20 @@ def open_session(bus: BusConfig) -> Iterator[zenoh.Session]:
         if not _log_done:
             zenoh.try_init_log_from_env()  # RUST_LOG/ZENOH_LOG when set; quiet otherwise
             _log_done = True
-    with zenoh.open(zenoh_config(bus)) as session:
+    cfg = zenoh_config(bus)
+    mode = json.loads(cfg.get_json("mode") or "null") or "peer"
+    notes = bus_warnings(cfg) if mode != "client" else []
+    if notes:
+        print(f"fp: warning: {'; '.join(notes)}", file=sys.stderr, flush=True)
+    try:
+        session = zenoh.open(cfg)
+    except zenoh.ZError as exc:
+        first = _zerror_line(exc)
+        where = [f"connect {json.loads(cfg.get_json('connect/endpoints') or 'null') or []}"]
+        if mode != "client":
+            where.insert(0, f"listen {listen_endpoints(cfg)}")
+        raise OSError(f"bus: could not open the zenoh {mode} session ({', '.join(where)}): {first}") from exc
+    with session:
         yield session
 
 
@@ -175,6 +280,12 @@ def add_bus_arguments(p: argparse.ArgumentParser, listen: str = EPHEMERAL, conne
         help="shared memory: auto (512 MiB pool if /dev/shm allows), off, or the pool size in MiB (default auto)",
     )
     g.add_argument("--connect-timeout-ms", type=int, help="connect/timeout_ms (default 2000)")
+    g.add_argument(
+        "--allow-remote",
+        action="store_true",
+        help="allow listening on a non-loopback address (e.g. tcp/0.0.0.0:7447); prints a warning. "
+        "Secure the bus first: docs/wire.md, 'Securing the bus'",
+    )
     p.set_defaults(_bus_listen=listen, _bus_connect=connect)
 
 
@@ -188,17 +299,30 @@ def _endpoints(values: list[str] | None, default: str | None, from_file: bool) -
 
 def bus_from_args(args: argparse.Namespace) -> BusConfig:
     """BusConfig from the arguments of :func:`add_bus_arguments`: with ``--zenoh-config``, what no flag
-    sets comes from the file; without, the defaults of the module doc."""
+    sets comes from the file; without, the defaults of the module doc. Checked (ValueError, one line):
+    the file reads, and no listener leaves loopback without ``--allow-remote``."""
     file = args.zenoh_config
-    return BusConfig(
+    listen = _endpoints(args.listen, args._bus_listen, bool(file))
+    if listen is None and not _file_sets_listen(file):  # never zenoh's default, every interface
+        listen = [args._bus_listen] if args._bus_listen else []
+    bus = BusConfig(
         mode=args.mode or (None if file else "peer"),
-        listen=_endpoints(args.listen, args._bus_listen, bool(file)),
+        listen=listen,
         connect=_endpoints(args.connect, args._bus_connect, bool(file)),
         multicast=True if args.multicast else (None if file else False),
         config_file=file,
         shm=args.shm or (None if file else "auto"),
         connect_timeout_ms=args.connect_timeout_ms or (None if file else 2000),
+        allow_remote=bool(getattr(args, "allow_remote", False)),
     )
+    zenoh_config(bus)  # a bad file or an exposed listener fails here, before the node's set-up
+    return bus
+
+
+def _file_sets_listen(path: str) -> bool:
+    """Whether the zenoh config file ``path`` gives its own ``listen/endpoints``."""
+    value = _config_file(path).get_json("listen/endpoints")
+    return value != zenoh.Config().get_json("listen/endpoints")
 
 
 def free_port() -> int:

@@ -157,11 +157,12 @@ def config_from_args(args: argparse.Namespace) -> ProcessorConfig:
 
 def run_process(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    bus = bus_from_args(args)  # checked first: a bad --zenoh-config or an exposed --listen fails at once
     tune_malloc()
     cfg = config_from_args(args)
     specs = specs_from_args(args)
     stop = stop_on_signals()
-    with open_session(bus_from_args(args)) as session:
+    with open_session(bus) as session:
         with Processor(session, cfg, specs) as node:
             log.info("processor on %s (%s queue), dictionary %s", node.keys.rf, cfg.queue, node.dictionary)
             print(json.dumps({"ready": True, "rig": cfg.rig, "dictionary": node.dictionary}), flush=True)

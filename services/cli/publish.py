@@ -83,12 +83,13 @@ def source_from_args(args: argparse.Namespace) -> Source:
 
 def run_publish(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    bus = bus_from_args(args)  # checked first: a bad --zenoh-config or an exposed --listen fails at once
     tune_malloc()
     pace = args.pace or ("ack" if args.fast else "rate" if args.rate else "none" if args.ingest else "original")
     wait_for = [] if args.wait_for == "none" else [w.strip() for w in args.wait_for.split(",") if w.strip()]
     source = source_from_args(args)
     stop = stop_on_signals()
-    with open_session(bus_from_args(args)) as session:
+    with open_session(bus) as session:
         pub = Publisher(
             session,
             args.rig,

@@ -49,11 +49,12 @@ def add_recover_parser(sub: argparse._SubParsersAction) -> None:
 
 def run_record(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    bus = bus_from_args(args)  # checked first: a bad --zenoh-config or an exposed --listen fails at once
     tune_malloc()
     stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
     out = Path(args.output or f"recordings/{args.rig or 'all'}-{stamp}.mcap")
     stop = stop_on_signals()
-    with open_session(bus_from_args(args)) as session:
+    with open_session(bus) as session:
         rec = Recorder(
             session,
             out,
