@@ -341,9 +341,10 @@ def test_diverging_wave_refused(good_file: Path) -> None:
         read_uff(good_file)
 
 
-def test_iq_data_refused(good_file: Path) -> None:
+def test_real_data_with_a_modulation_frequency_refused(good_file: Path) -> None:
+    # IQ is read (tests/test_iq.py); real samples that claim a modulation frequency are not IQ.
     _edit(good_file, lambda cd: cd["modulation_frequency"].__setitem__(Ellipsis, 2e6))
-    with pytest.raises(UFFError, match="modulation_frequency: expected 0"):
+    with pytest.raises(UFFError, match=r"modulation_frequency: 2e\+06 Hz means IQ data, but .* real samples"):
         read_uff(good_file)
 
 

@@ -15,7 +15,9 @@ Layout written (h5py view; every UFF node carries the string attributes ``class`
       sampling_frequency   (1,1) float64, class "double", attrs complex=0, imaginary=0
       initial_time         (1,1) t0 [s]
       sound_speed          (1,1) c0 [m/s]
-      modulation_frequency (1,1) 0 (RF)
+      modulation_frequency (1,1) 0 (RF); on reading, f_m > 0 with complex data (a group data/real +
+                           data/imag, as USTB writes complex arrays) is IQ, converted to RF
+                           (fpcore/io/iq.py)
       data                 (N_frames, N_waves, N_channels, N_samples): MATLAB's column-major
                            [time x channel x wave x frame] as h5py (row-major) sees it
       probe                uff.linear_array (N, pitch, element_width, element_height, geometry)
@@ -73,6 +75,7 @@ import scipy.fft as sfft
 
 from fpcore.acquisition import Acquisition, PlaneWaveSequence, Probe
 from fpcore.geometry import cosines
+from fpcore.io.iq import iq_to_rf, rf_upsampling
 from fpcore.truth import Truth
 
 __all__ = [
@@ -573,6 +576,33 @@ def _min_spacing(pos: np.ndarray) -> float | None:
     return float(spacing.min()) if spacing.size else None
 
 
+def _data_nodes(cd: h5py.Group, name: str, fmod: float) -> tuple[h5py.Dataset, h5py.Dataset | None]:
+    """(samples, imaginary part or None) of ``data``: real RF, or IQ as USTB writes complex arrays (a group
+    ``data`` with datasets ``real`` and ``imag``, attribute complex = 1) or as a native complex dataset."""
+    dnode = _node(cd, "data", f"{name}/data", "the channel data")
+    inode = None
+    if isinstance(dnode, h5py.Group):
+        if not ("real" in dnode and "imag" in dnode):
+            raise UFFError(
+                f"{name}/data: expected a dataset (RF) or a group with real and imag datasets (IQ), "
+                f"got a group holding {list(dnode.keys())}"
+            )
+        dnode, inode = dnode["real"], dnode["imag"]
+        if not (isinstance(dnode, h5py.Dataset) and isinstance(inode, h5py.Dataset)) or inode.shape != dnode.shape:
+            raise UFFError(f"{name}/data: expected real and imag datasets of one shape, got {dnode} and {inode}")
+    is_iq = inode is not None or dnode.dtype.kind == "c"
+    if is_iq and fmod == 0:
+        raise UFFError(f"{name}/data: complex (IQ) samples need modulation_frequency > 0 Hz, got 0 (RF)")
+    if not is_iq and fmod > 0:
+        raise UFFError(
+            f"{name}/modulation_frequency: {fmod:g} Hz means IQ data, but {name}/data holds real samples "
+            "(expected complex data or data/real + data/imag)"
+        )
+    if dnode.dtype.kind not in "fiuc" or (inode is not None and inode.dtype.kind not in "fiu"):
+        raise UFFError(f"{name}/data: expected numbers, got dtype {dnode.dtype}")
+    return dnode, inode
+
+
 def _align(rf: np.ndarray, shifts: np.ndarray) -> np.ndarray:
     """Delay wave n of rf (N_u, N_theta, N_t) by shifts[n] >= 0 samples onto a longer axis."""
     n_u, n_w, n_t = rf.shape
@@ -606,6 +636,13 @@ def read_uff(
     """
     if not Path(path).is_file():
         raise UFFError(f"{path}: expected an existing UFF (HDF5) file, found none")
+    from fpcore.io.formats import detect_format  # not HDF5, .mat, PICMUS: read it or say what it is
+
+    if dataset is None and detect_format(path) == "picmus":
+        from fpcore.io.picmus import read_picmus
+
+        acqs = read_picmus(path)
+        return acqs if frames is None else (acqs[frames] if isinstance(frames, slice) else [acqs[i] for i in frames])
     with h5py.File(path, "r") as f:
         name = _choose_dataset(f, dataset)
         cd = f[name]
@@ -613,23 +650,19 @@ def read_uff(
         t_init = _scalar(cd, "initial_time", f"{name}/initial_time", "time of the first sample, s")
         c0 = _scalar(cd, "sound_speed", f"{name}/sound_speed", "m/s")
         fmod = _scalar(cd, "modulation_frequency", f"{name}/modulation_frequency", "0 for RF", default=0.0)
-        if fmod != 0:
-            raise UFFError(
-                f"{name}/modulation_frequency: expected 0 (RF data), got {fmod:g} Hz (IQ data are not supported)"
-            )
+        if not (fmod >= 0 and math.isfinite(fmod)):
+            raise UFFError(f"{name}/modulation_frequency: expected 0 (RF) or a frequency > 0 Hz (IQ), got {fmod}")
         if not (fs > 0 and math.isfinite(fs)):
             raise UFFError(f"{name}/sampling_frequency: expected a positive frequency in Hz, got {fs}")
+        fs_iq = fs
+        fs = fs * rf_upsampling(fs, fmod)  # IQ becomes RF at this rate (fpcore/io/iq.py)
         if not (c0 > 0 and math.isfinite(c0)):
             raise UFFError(f"{name}/sound_speed: expected a positive speed in m/s, got {c0}")
         positions, pitch = _read_probe(cd, f"{name}/probe")
         sines, delays = _read_sequence(cd, f"{name}/sequence", c0)
         n_u, n_w = positions.shape[0], sines.shape[0]
 
-        dnode = _node(cd, "data", f"{name}/data", "the channel data")
-        if isinstance(dnode, h5py.Group) or np.dtype(dnode.dtype).kind == "c":
-            raise UFFError(f"{name}/data: expected real RF samples, got complex (IQ) data")
-        if dnode.dtype.kind not in "fiu":
-            raise UFFError(f"{name}/data: expected numbers, got dtype {dnode.dtype}")
+        dnode, inode = _data_nodes(cd, name, fmod)
         shape = dnode.shape
         full = (1,) * (4 - len(shape)) + tuple(shape) if 2 <= len(shape) <= 4 else None
         if full is None or full[1:3] != (n_w, n_u):
@@ -677,11 +710,15 @@ def read_uff(
         rfs = []
         for i in idx:
             raw = np.asarray(dnode[i] if len(shape) == 4 else dnode[()])
+            if inode is not None:
+                raw = raw + 1j * np.asarray(inode[i] if len(shape) == 4 else inode[()], dtype=np.float32)
             rf = np.ascontiguousarray(raw.reshape(n_w, n_u, -1).transpose(1, 0, 2))
-            if not np.issubdtype(rf.dtype, np.floating):
+            if not np.issubdtype(rf.dtype, np.inexact):
                 rf = rf.astype(np.float32)
             if not np.all(np.isfinite(rf)):
                 raise UFFError(f"{name}/data: expected finite RF samples, found NaN or Inf in frame {i}")
+            if fmod > 0:
+                rf, _ = iq_to_rf(rf, fs_iq, t_init, fmod)
             if np.any(shifts > 1e-6):
                 rf = _align(rf, shifts)
             rfs.append((i, rf))
