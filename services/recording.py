@@ -1,48 +1,67 @@
 """MCAP recordings of the bus: reading them back, copying them, salvaging broken ones (docs/design.md §7,
-stack notes). The recorder node that writes them is ``services.nodes.recorder``.
+docs/wire.md "MCAP recordings"). The recorder node that writes them is ``services.nodes.recorder``.
 
-Conventions: one channel per key expression and header schema; message encoding ``"fpwire"``
-(:data:`MESSAGE_ENCODING`: the FPWIRE01 payload exactly as it travelled); schema = the JSON Schema of
-the message header, or :data:`UNKNOWN_SCHEMA` for a message whose header is unreadable or of an
-unsupported schema/version.
+Channels, one per key expression, schema and encoding:
 
-Reading is non-seeking and tolerant (:func:`iter_raw`): a file whose writer was killed yields every
-message of its complete chunks; :func:`recover` copies those into a complete file.
+* messages without arrays (Detections, Tracks, Status, ErrorReport: :data:`JSON_SCHEMAS`) as plain JSON
+  (message encoding ``"json"``, :data:`JSON_ENCODING`): the message's JSON header exactly as it travelled,
+  with its JSON Schema (``jsonschema``) — any MCAP tool shows them;
+* RF frames, γ-maps and confocal images as the compact FPWIRE01 payload (``"fpwire"``,
+  :data:`MESSAGE_ENCODING`), with the JSON Schema of their header; a message whose header is unreadable
+  or of an unsupported schema/version is kept raw on a channel whose schema is :data:`UNKNOWN_SCHEMA`;
+* display channels (``fp/<rig>/display/…``, ``protobuf``, Foxglove's well-known schemas; written by the
+  recorder from ``services.viewing.foxglove``) — derived views, skipped by :func:`iter_messages`.
+
+Reading is non-seeking and tolerant (:func:`iter_raw`): every chunk's CRC is checked (a corrupted chunk is
+skipped and counted), a file whose writer was killed yields every message of its complete chunks, and a
+file that is not an MCAP raises :class:`RecordingError`. :func:`recover` copies what is readable into a
+complete file and reports what it could not read.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import os
 import struct
+import zlib
 from collections import Counter
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
 from mcap.exceptions import McapError
-from mcap.reader import NonSeekingReader
-from mcap.records import Channel, Schema
+from mcap.opcode import Opcode
+from mcap.records import Channel, Chunk, Schema
 from mcap.records import Message as McapMessage
+from mcap.stream_reader import StreamReader, get_chunk_data_stream
 from mcap.writer import CompressionType, Writer
 
 from services.messages import Message
-from services.wire import WireError, decode
+from services.wire import ALIGN, MAGIC, WireError, decode
 
 __all__ = [
     "COMPRESSION",
+    "JSON_ENCODING",
+    "JSON_SCHEMAS",
     "MESSAGE_ENCODING",
+    "RecordingError",
     "UNKNOWN_SCHEMA",
     "copy_messages",
     "iter_messages",
     "iter_raw",
     "iter_recording",
+    "json_to_wire",
     "recover",
+    "wire_payload",
 ]
 
 log = logging.getLogger("fp.recording")
 
 MESSAGE_ENCODING = "fpwire"
+JSON_ENCODING = "json"
+#: schemas recorded as plain JSON (no arrays: the wire header is the whole message).
+JSON_SCHEMAS = frozenset({"Detections", "Tracks", "Status", "ErrorReport"})
 UNKNOWN_SCHEMA = json.dumps(
     {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
@@ -51,45 +70,130 @@ UNKNOWN_SCHEMA = json.dumps(
     },
     indent=2,
 ).encode()
-#: chunk compression of the recorder (``--compression``).
+#: chunk compression of the recorder (``--compression``; zstd by default).
 COMPRESSION = {"none": CompressionType.NONE, "zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4}
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+#: largest record the reader loads (a corrupt length field must not allocate 2⁶² bytes; issue 13).
+RECORD_SIZE_LIMIT = min(4 << 30, (os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")) // 4)
 
 RawMessage = tuple[Schema | None, Channel, McapMessage]
 
 
-def iter_raw(path: str | Path, report: dict[str, Any] | None = None) -> Iterator[RawMessage]:
-    """Every message of an MCAP file in file order, with a non-seeking reader (log_time_order=False):
-    a file without summary (killed writer) gives all its complete chunks; the damage, if any, is noted
-    in ``report["error"]`` instead of raising."""
+class RecordingError(ValueError):
+    """The file is not an MCAP recording, or nothing could be read from it."""
+
+
+def _check_magic(path: Path) -> None:
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
     with open(path, "rb") as f:
-        reader = NonSeekingReader(f, record_size_limit=None)
+        head = f.read(len(MCAP_MAGIC))
+    if head != MCAP_MAGIC:
+        found = "an empty file" if not head else f"{head!r}"
+        raise RecordingError(f"{path}: not an MCAP file (expected the magic {MCAP_MAGIC!r}, found {found})")
+
+
+def _chunk_records(chunk: Chunk) -> list[Any]:
+    """The records of a chunk, its CRC (over the uncompressed bytes) checked first; raises on any damage."""
+    stream, n = get_chunk_data_stream(chunk, validate_crc=True)
+    out: list[Any] = []
+    while stream.count < n:
+        opcode, length = stream.read1(), stream.read8()
+        start = stream.count
+        if opcode == Opcode.CHANNEL:
+            out.append(Channel.read(stream))
+        elif opcode == Opcode.MESSAGE:
+            out.append(McapMessage.read(stream, length))
+        elif opcode == Opcode.SCHEMA:
+            out.append(Schema.read(stream))
+        else:
+            stream.read(length)
+        extra = length - (stream.count - start)
+        if extra < 0:
+            raise McapError(f"chunk record (opcode {opcode}) of {length} bytes read as {stream.count - start}")
+        stream.read(extra)  # fields a newer MCAP version may add
+    return out
+
+
+def iter_raw(path: str | Path, report: dict[str, Any] | None = None) -> Iterator[RawMessage]:
+    """Every message of an MCAP file in file order, read sequentially (no summary needed: a file whose
+    writer was killed gives all its complete chunks). Each chunk's CRC is checked: a corrupted chunk is
+    skipped and counted in ``report["corrupted_chunks"]``; damage that stops the reading is noted in
+    ``report["error"]`` instead of raising. Raises :class:`RecordingError` if the file is not an MCAP."""
+    path = Path(path)
+    _check_magic(path)
+    rep = report if report is not None else {}
+    rep.setdefault("error", None)
+    rep.update(chunks=0, corrupted_chunks=0)
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+
+    def records(items: Iterable[Any]) -> Iterator[RawMessage]:
+        for r in items:
+            if isinstance(r, Schema):
+                schemas[r.id] = r
+            elif isinstance(r, Channel):
+                channels[r.id] = r
+            elif isinstance(r, McapMessage):
+                ch = channels.get(r.channel_id)
+                if ch is None:
+                    raise McapError(f"message on channel {r.channel_id}, which no channel record declares")
+                yield schemas.get(ch.schema_id), ch, r
+
+    with open(path, "rb") as f:
+        reader = StreamReader(f, emit_chunks=True, record_size_limit=RECORD_SIZE_LIMIT)
         try:
-            yield from reader.iter_messages(log_time_order=False)
-        except (McapError, struct.error, ValueError, EOFError) as exc:
-            if report is None:
-                return
-            report["error"] = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+            for rec in reader.records:
+                if not isinstance(rec, Chunk):
+                    yield from records([rec])
+                    continue
+                rep["chunks"] += 1
+                try:
+                    inner = _chunk_records(rec)
+                except Exception as exc:  # CRC mismatch, bad compression, bad inner record: skip this chunk
+                    rep["corrupted_chunks"] += 1
+                    log.warning("%s: chunk %d skipped: %s", path, rep["chunks"], exc)
+                    continue
+                yield from records(inner)
+        except (McapError, struct.error, ValueError, EOFError, MemoryError, zlib.error) as exc:
+            rep["error"] = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+
+
+def json_to_wire(data: bytes) -> bytes:
+    """The FPWIRE01 payload of a message recorded as JSON (its header; no buffers)."""
+    head = bytes(data)
+    pad = -(16 + len(head)) % ALIGN
+    return MAGIC + struct.pack("<II", len(head), 0) + head + b"\0" * pad
+
+
+def wire_payload(channel: Channel, msg: McapMessage) -> bytes | None:
+    """The wire payload of a recorded bus message (JSON channels re-wrapped); None for display channels."""
+    if channel.message_encoding == MESSAGE_ENCODING:
+        return bytes(msg.data)
+    if channel.message_encoding == JSON_ENCODING:
+        return json_to_wire(msg.data)
+    return None
 
 
 def iter_recording(path: str | Path) -> Iterator[tuple[str, bytes, int, int]]:
-    """``(key, payload, log_time_ns, publish_time_ns)`` of every message of an MCAP file in file order.
-
-    Non-seeking and tolerant: a file whose writer was killed yields every message of its complete
-    chunks and stops at the damage (stack notes).
-    """
+    """``(key, wire payload, log_time_ns, publish_time_ns)`` of every bus message of an MCAP file in file
+    order (display channels left out). Tolerant like :func:`iter_raw`."""
     for _schema, channel, msg in iter_raw(path):
-        yield channel.topic, bytes(msg.data), int(msg.log_time), int(msg.publish_time)
+        payload = wire_payload(channel, msg)
+        if payload is not None:
+            yield channel.topic, payload, int(msg.log_time), int(msg.publish_time)
 
 
 def iter_messages(path: str | Path, report: dict[str, Any] | None = None) -> Iterator[tuple[str, Message]]:
-    """(key, decoded message) for every fpwire message of a recording, in file order; messages that do
-    not decode are counted in ``report["undecodable"]`` and skipped."""
+    """(key, decoded message) for every bus message of a recording (fpwire and JSON channels), in file
+    order; messages that do not decode are counted in ``report["undecodable"]`` and skipped."""
     bad = 0
     for _schema, channel, msg in iter_raw(path, report):
-        if channel.message_encoding != MESSAGE_ENCODING:
+        payload = wire_payload(channel, msg)
+        if payload is None:
             continue
         try:
-            yield channel.topic, decode(msg.data)
+            yield channel.topic, decode(payload)
         except WireError as exc:
             bad += 1
             log.warning("%s: undecodable message on %s: %s", path, channel.topic, exc)
@@ -120,13 +224,14 @@ def copy_messages(writer: Writer, messages: Iterable[RawMessage]) -> Counter[str
 
 def recover(broken: str | Path, fixed: str | Path | None = None) -> dict[str, Any]:
     """Copy every readable message of ``broken`` into a complete MCAP file (default
-    ``<stem>.recovered.mcap``) and report how many were kept, per key."""
+    ``<stem>.recovered.mcap``) and report how many were kept, per key, and how many chunks were corrupted.
+    ``complete`` is true only when the whole file was read and every CRC matched. Raises
+    :class:`RecordingError` (and writes nothing) when the input is not an MCAP or holds no readable message."""
     broken = Path(broken)
     out = Path(fixed) if fixed else broken.with_name(f"{broken.stem}.recovered.mcap")
     if out.resolve() == broken.resolve():
         raise ValueError("recover: the output must differ from the broken file")
-    if not broken.is_file():
-        raise FileNotFoundError(f"{broken}: no such file")
+    _check_magic(broken)
     report: dict[str, Any] = {"input": str(broken), "output": str(out), "error": None}
     span: dict[str, int] = {}
 
@@ -136,15 +241,25 @@ def recover(broken: str | Path, fixed: str | Path | None = None) -> dict[str, An
             span["first"], span["last"] = min(span.get("first", t), t), max(span.get("last", t), t)
             yield m
 
-    with open(out, "wb") as f:
-        w = Writer(f, compression=CompressionType.NONE)
-        w.start(profile="", library="fingerprint services.recording (recovered)")
-        by_key = copy_messages(w, timed(iter_raw(broken, report)))
-        w.finish()
+    tmp = out.with_name(out.name + ".part")
+    try:
+        with open(tmp, "wb") as f:
+            w = Writer(f, compression=CompressionType.ZSTD)
+            w.start(profile="", library="fingerprint services.recording (recovered)")
+            by_key = copy_messages(w, timed(iter_raw(broken, report)))
+            w.finish()
+        if not by_key:
+            raise RecordingError(
+                f"{broken}: no readable message ({report['corrupted_chunks']} corrupted chunk(s) of "
+                f"{report['chunks']}{'; ' + report['error'] if report['error'] else ''})"
+            )
+        tmp.replace(out)
+    finally:
+        tmp.unlink(missing_ok=True)
     report.update(
         messages=sum(by_key.values()),
         by_key=dict(by_key),
-        complete=report["error"] is None,
+        complete=report["error"] is None and report["corrupted_chunks"] == 0,
         first_log_time_ns=span.get("first"),
         last_log_time_ns=span.get("last"),
     )

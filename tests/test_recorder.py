@@ -20,7 +20,7 @@ from services.bus import BusConfig, free_port, open_session, put_message, wait_f
 from services.cli import main
 from services.messages import Status, examples
 from services.nodes.recorder import Recorder, _Received, _Segment
-from services.recording import iter_raw, recover
+from services.recording import iter_raw, recover, wire_payload
 from services.topics import ALL_RIGS, keys
 from services.wire import decode, encode
 
@@ -98,7 +98,7 @@ def test_kill9_recorder_then_recover_keeps_everything_flushed(tmp_path, capsys) 
     assert not _summary_ok(path)  # the killed file has no summary
     assert main(["recover", str(path), "-o", str(fixed)]) == 0
     report = json.loads(capsys.readouterr().out)
-    kept = [decode(bytes(m.data)).frames_processed for _, c, m in iter_raw(fixed) if c.topic == keys(rig).status]
+    kept = [decode(wire_payload(c, m)).frames_processed for _, c, m in iter_raw(fixed) if c.topic == keys(rig).status]
     must = {i for i, t in sent if t < t_kill - 1.0}
     assert must and must <= set(kept), f"lost {sorted(must - set(kept))[:10]}"
     assert report["messages"] == sum(report["by_key"].values()) >= len(must)
@@ -133,7 +133,7 @@ def test_rotation_by_size_and_clean_close(tmp_path) -> None:
     got = []
     for p in files:
         assert _summary_ok(p)  # every segment is a complete MCAP file
-        got += [bytes(m.data) for _, _, m in iter_raw(p)]
+        got += [b for _, c, m in iter_raw(p) if (b := wire_payload(c, m)) is not None]  # not the display channels
     assert got == payloads  # the wire bytes, in order, nothing lost across segments
 
 
@@ -161,6 +161,6 @@ def test_recover_truncated_file_keeps_complete_chunks(tmp_path, compression) -> 
     cut = tmp_path / "cut.mcap"  # as if the writer died while writing the 4th chunk
     cut.write_bytes(path.read_bytes()[: fourth.chunk_start_offset + fourth.chunk_length // 2])
     rep = recover(cut, tmp_path / "cut_fixed.mcap")
-    kept = [bytes(m.data) for _, _, m in iter_raw(tmp_path / "cut_fixed.mcap")]
+    kept = [wire_payload(c, m) for _, c, m in iter_raw(tmp_path / "cut_fixed.mcap")]
     assert not rep["complete"] and rep["error"]
     assert rep["messages"] == len(kept) == 30 and kept == msgs[:30]

@@ -26,7 +26,7 @@ from services.bus import BusConfig, FifoSlot, LatestSlot, free_port, open_sessio
 from services.messages import RFFrame
 from services.nodes.processor import Processor, ProcessorConfig
 from services.nodes.publisher import Publisher
-from services.recording import iter_raw
+from services.recording import JSON_SCHEMAS, iter_raw
 from services.registry import FingerprintSpec, dictionary_request
 from services.sources import AcquisitionSource, IngestSource, MCAPSource, born_frames
 from services.topics import keys
@@ -203,7 +203,10 @@ def test_end_to_end_record_and_replay(data, tmp_path) -> None:
         schemas: dict[str, str] = {}
         for schema, channel, msg in iter_raw(mcap_path):
             rec.setdefault(channel.topic, []).append(bytes(msg.data))
-            assert channel.message_encoding == "fpwire"
+            expected = (
+                "protobuf" if "/display/" in channel.topic else "json" if schema.name in JSON_SCHEMAS else "fpwire"
+            )
+            assert channel.message_encoding == expected  # JSON: no arrays; protobuf: Foxglove display views
             schemas[channel.topic] = schema.name
         for topic in ("rf", "gamma", "image", "detections", "tracks"):
             assert len(rec[k.topic(topic)]) == n, topic

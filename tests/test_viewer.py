@@ -11,7 +11,7 @@ import pytest
 
 from services.cli import main
 from services.messages import GammaMap
-from services.recording import iter_messages, iter_raw
+from services.recording import iter_messages, iter_raw, iter_recording, wire_payload
 from services.topics import PREFIX, keys
 from services.viewing.frame_figure import to_figure
 from services.viewing.rerun_log import to_rrd
@@ -30,8 +30,15 @@ def test_sample_recording_decodes_with_current_schemas() -> None:
     assert SAMPLE.stat().st_size < 5_000_000
     n = 0
     for _schema, channel, msg in iter_raw(SAMPLE):
-        decoded = decode(msg.data)  # raises WireError on any schema drift
-        assert channel.topic.startswith(f"{PREFIX}/") and channel.message_encoding == "fpwire"
+        assert channel.topic.startswith(f"{PREFIX}/")
+        payload = wire_payload(channel, msg)  # None: a Foxglove display channel (tests/test_foxglove_recording.py)
+        if payload is None:
+            assert channel.message_encoding == "protobuf" and "/display/" in channel.topic
+            continue
+        decoded = decode(payload)  # raises WireError on any schema drift
+        assert channel.message_encoding == (
+            "json" if not type(decoded).model_fields.keys() & {"rf", "gamma", "image"} else "fpwire"
+        )
         assert decoded.schema_name == channel.metadata.get("schema_name", decoded.schema_name)
         n += 1
     assert n > 0
@@ -149,13 +156,11 @@ def test_live_view_logs_the_bus_to_rrd(tmp_path: Path, serve: bool) -> None:
                 # One blocking publisher per key, each matched before the first put: a plain session.put
                 # drops under load (congestion control DROP) and a put before the subscription arrives is lost.
                 n = 0
-                for _schema, channel, msg in iter_raw(SAMPLE):
-                    if channel.topic not in pubs:
-                        pubs[channel.topic] = session.declare_publisher(
-                            channel.topic, congestion_control=zenoh.CongestionControl.BLOCK
-                        )
-                        assert wait_for_matching(pubs[channel.topic], 20.0), channel.topic
-                    pubs[channel.topic].put(bytes(msg.data))
+                for topic, payload, _log, _pub in iter_recording(SAMPLE):
+                    if topic not in pubs:
+                        pubs[topic] = session.declare_publisher(topic, congestion_control=zenoh.CongestionControl.BLOCK)
+                        assert wait_for_matching(pubs[topic], 20.0), topic
+                    pubs[topic].put(payload)
                     n += 1
                 deadline = time.monotonic() + 20.0  # until the viewer has logged every message
                 while live.get("messages", 0) < n and time.monotonic() < deadline:
@@ -166,7 +171,7 @@ def test_live_view_logs_the_bus_to_rrd(tmp_path: Path, serve: bool) -> None:
                 stop.set()
                 thread.join(30)
         assert (out["messages"], out["undecodable"], out["dropped"]) == (n, 0, 0)
-        assert out["frames"] == [0, 1, 2, 3]
+        assert out["frames"] == _gamma_frames()
         assert rrd.stat().st_size > 10_000
         if viewer is not None:
             expected = _rrd_entities(rrd)

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from services.bus import DEFAULT_HUB
+
 __all__ = ["add_demo_parser", "cmd_demo"]
 
 
@@ -30,6 +32,19 @@ def add_demo_parser(sub: argparse._SubParsersAction) -> None:
     demo.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     demo.add_argument("--rig", default="demo", help="rig name in the key expressions (default demo)")
     demo.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
+    demo.add_argument(
+        "--adc-bits",
+        type=int,
+        default=16,
+        help="digitise the simulated RF as a scanner does: int16 samples of this many bits with their scale "
+        "(default 16, ≈ 96 dB; 0 keeps float32). Halves the RF in the recording.",
+    )
+    demo.add_argument(
+        "--listen",
+        default=None,
+        help=f"endpoint of the demo's hub (default {DEFAULT_HUB}, where `fp view --live` looks; a free "
+        "loopback port if that one is taken)",
+    )
     demo.set_defaults(func=cmd_demo)
 
 
@@ -40,6 +55,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from rich.table import Table
 
     from fpcore.truth import TargetTruth, Truth
+    from services.convert import QuantisedSource
     from services.nodes.local import run_pipeline
     from services.nodes.processor import ProcessorConfig
     from services.pipeline import truth_positions
@@ -48,8 +64,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     if args.frames is not None and args.frames < 1:
         raise ValueError(f"--frames: expected at least 1, got {args.frames}")
+    if args.adc_bits != 0 and not 2 <= args.adc_bits <= 16:
+        raise ValueError(f"--adc-bits: expected 0 (float32 RF) or 2…16, got {args.adc_bits}")
+    hub = demo_hub(args.listen)
     console = Console()
-    source = SimulatorSource(args.scenario, n_frames=args.frames, quick=not args.full, seed=args.seed)
+    sim = SimulatorSource(args.scenario, n_frames=args.frames, quick=not args.full, seed=args.seed)
+    source = QuantisedSource(sim, args.adc_bits) if args.adc_bits else sim
     # The default grid: the record's whole time window, the suspension's surface included — no depth
     # window chosen from the truth; detections are judged on their local significance (docs/design.md §4.9).
     cfg = ProcessorConfig(rig=args.rig, queue="fifo")
@@ -101,9 +121,17 @@ def cmd_demo(args: argparse.Namespace) -> int:
         f"recorder; default grid (the record's whole time window); detections at calibrated PFA < "
         f"{cfg.max_pfa:g}; writing to {args.out}"
     )
+    follow = "fp view --live" + ("" if hub == DEFAULT_HUB else f" --connect {hub}")
+    console.print(f"bus: {hub} (follow it with `{follow} --rig {args.rig}`)")
     with Live(Group(table()), console=console, refresh_per_second=4, get_renderable=lambda: Group(table())):
         summary = run_pipeline(
-            source, rig=args.rig, out_dir=args.out, n_frames=args.frames, progress_callback=on_frame, processor=cfg
+            source,
+            rig=args.rig,
+            out_dir=args.out,
+            n_frames=args.frames,
+            progress_callback=on_frame,
+            processor=cfg,
+            hub=hub,
         )
     errors = [float(r[4]) for r in rows if r[4]]
     rec = summary.get("recording") or {}
@@ -149,3 +177,25 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def _mm(p: np.ndarray) -> str:
     return ", ".join(f"{v * 1e3:.2f}" for v in p)
+
+
+def demo_hub(listen: str | None) -> str:
+    """The endpoint the demo's processor listens on: ``listen`` if given (checked to be loopback TCP), else the
+    well-known hub ``tcp/127.0.0.1:7447`` (what `fp view --live` and the other nodes connect to by default), or
+    a free loopback port when another node already holds it."""
+    import socket
+
+    from services.bus import free_port
+
+    if listen is not None:
+        host, _, port = listen.removeprefix("tcp/").rpartition(":")
+        if not listen.startswith("tcp/") or host not in ("127.0.0.1", "localhost") or not port.isdigit():
+            raise ValueError(f"--listen: expected a loopback endpoint such as {DEFAULT_HUB}, got {listen!r}")
+        return listen
+    port = int(DEFAULT_HUB.rsplit(":", 1)[1])
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return f"tcp/127.0.0.1:{free_port()}"
+    return DEFAULT_HUB

@@ -44,6 +44,7 @@ def run_pipeline(
     shm: str = "auto",
     warmup: int = 0,
     timeout: float = 600.0,
+    hub: str | None = None,
 ) -> dict[str, Any]:
     """Publisher + processor + recorder in one process, over zenoh on loopback; returns when every frame
     is processed (and recorded). ``fp demo`` and the benchmark call it.
@@ -57,6 +58,8 @@ def run_pipeline(
     has counts, rates, latency median/p95, mean stage times and their shares, the recording and the
     per-frame detections. ``warmup`` frames are left out of the rate, latency and stage statistics
     (the first messages of a session page-fault its shared-memory pool: ≈ 0.5 s once, see services.bus).
+    ``hub``: the endpoint the processor's session listens on (default: a free loopback port; `fp demo` gives
+    the well-known ``tcp/127.0.0.1:7447`` so that `fp view --live` finds it).
     """
     src: Source = SimulatorSource(source, n_frames=n_frames, quick=quick) if isinstance(source, str) else source
     if fingerprints is None:
@@ -67,7 +70,7 @@ def run_pipeline(
         raise ValueError(f"processor config rig {cfg.rig!r} differs from rig {rig!r}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    hub = f"tcp/127.0.0.1:{free_port()}"
+    hub = hub or f"tcp/127.0.0.1:{free_port()}"
     rows: list[dict[str, Any]] = []
     latencies: list[float] = []
     marks: dict[str, float] = {}

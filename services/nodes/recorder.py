@@ -1,24 +1,30 @@
-"""Recorder node (`fp record`) (docs/design.md §2, §7, stack notes).
+"""Recorder node (`fp record`) (docs/design.md §2, §7; docs/wire.md "MCAP recordings").
 
-Every message on ``fp/**`` (or one rig's ``fp/<rig>/**``) goes to MCAP, byte for byte:
+Every message on ``fp/**`` (or one rig's ``fp/<rig>/**``; ``include`` / ``exclude`` key expressions narrow
+it) goes to MCAP:
 
-* one channel per key expression and header schema: topic = the key (``fp/bench/rf``), message
-  encoding ``"fpwire"`` (the FPWIRE01 payload exactly as it travelled: header + raw buffers), schema =
-  the JSON Schema of the message header (``services.schemas_gen.render``; encoding ``jsonschema``,
-  name = schema name), so other tools can read the metadata (docs/design.md §7);
-* a malformed message is still recorded raw under its key: on a channel of its header's schema when
-  the header is readable and supported, else on a channel whose schema is ``"unknown"``; channel
-  metadata keeps the schema name/version the header claimed;
+* one channel per key expression, header schema and encoding: topic = the key (``fp/bench/rf``); messages
+  without arrays (Detections, Tracks, Status, ErrorReport) as plain JSON (encoding ``json``: their header,
+  which is the whole message) with their JSON Schema, so that any MCAP tool reads them; RF frames, γ-maps
+  and confocal images as the FPWIRE01 payload (encoding ``fpwire``), schema = the JSON Schema of the header;
+* RF is kept as it came: int16 RF with its ``rf_scale`` (RFFrame 1.2) from an integer source, as scanners
+  deliver it (half the bytes of float32, and it compresses: 3.1 MB a quick demo frame with zstd vs 8.7 MB);
+* a malformed message is still recorded raw under its key: on a channel of its header's schema when the
+  header is readable and supported, else on a channel whose schema is ``"unknown"``; channel metadata keeps
+  the schema name/version the header claimed;
+* display channels ``fp/<rig>/display/…`` in Foxglove's well-known schemas (``services.viewing.foxglove_view``:
+  γ and confocal sections as ``foxglove.Grid`` in metres, detections, tracks, truth and probe as
+  ``foxglove.SceneUpdate``), unless ``display=False``;
 * log_time = receive time, publish_time = the sender's zenoh timestamp (both ns since the epoch);
   sequence = per-channel counter;
-* uncompressed by default (≈ 1 GB/s here; ``zstd`` ≈ 90 MB/s, stack notes); flushed every
-  ``flush_interval`` (0.5 s): ``Writer.flush()`` closes the open chunk, so a killed recorder loses at
-  most the last interval (``services.recording.recover`` salvages the rest);
+* zstd chunk compression by default (``none`` and ``lz4`` too); flushed every ``flush_interval`` (0.5 s):
+  ``Writer.flush()`` closes the open chunk, so a killed recorder loses at most the last interval
+  (``services.recording.recover`` salvages the rest);
 * rotation by size (``max_bytes``) and/or age (``max_seconds``): segments ``<stem>-000.mcap``, …
 
 The zenoh callback only queues, within a byte budget (``max_queue_bytes``, 512 MiB: a slow disk blocks
-the bus instead of growing memory, docs/design.md §7 "replay blocks"); a writer thread writes, flushes and
-rotates.
+the bus instead of growing memory, docs/design.md §7 "replay blocks"); a writer thread converts, writes,
+flushes and rotates.
 """
 
 from __future__ import annotations
@@ -36,12 +42,12 @@ from typing import IO, Any
 import zenoh
 from mcap.writer import Writer
 
-from services.messages import MESSAGE_TYPES
+from services.messages import MESSAGE_TYPES, Message
 from services.nodes.base import Node
-from services.recording import COMPRESSION, MESSAGE_ENCODING, UNKNOWN_SCHEMA
+from services.recording import COMPRESSION, JSON_ENCODING, JSON_SCHEMAS, MESSAGE_ENCODING, UNKNOWN_SCHEMA
 from services.schemas_gen import render
 from services.topics import ALL_RIGS
-from services.wire import WireError, decode_header, extract_header
+from services.wire import WireError, decode, decode_header, extract_header
 
 __all__ = ["Recorder"]
 
@@ -92,31 +98,61 @@ class _Segment:
             },
         )
         self.schemas: dict[str, int] = {}
-        self.channels: dict[tuple[str, str], int] = {}
+        self.channels: dict[tuple[str, str, str], int] = {}
         self.sequence: Counter[int] = Counter()
         self.opened = time.monotonic()
         self.messages = 0
         self.unflushed = 0
 
-    def channel(self, key: str, label: str, meta: dict[str, str]) -> int:
-        cid = self.channels.get((key, label))
+    def channel(self, key: str, label: str, meta: dict[str, str], encoding: str = MESSAGE_ENCODING) -> int:
+        cid = self.channels.get((key, label, encoding))
         if cid is None:
             sid = self.schemas.get(label)
             if sid is None:
                 data = render(MESSAGE_TYPES[label]).encode() if label in MESSAGE_TYPES else UNKNOWN_SCHEMA
                 sid = self.writer.register_schema(label, "jsonschema", data)
                 self.schemas[label] = sid
-            cid = self.writer.register_channel(key, MESSAGE_ENCODING, sid, {"key": key, **meta})
-            self.channels[(key, label)] = cid
+            cid = self.writer.register_channel(key, encoding, sid, {"key": key, **meta})
+            self.channels[(key, label, encoding)] = cid
         return cid
 
-    def write(self, rec: _Received) -> None:
-        label, meta = _schema_of(rec.payload, rec.attachment)
-        cid = self.channel(rec.key, label, meta)
+    def display_channel(self, topic: str, fmsg: Any) -> int:
+        """The channel of a Foxglove display message (schema and encoding from foxglove-sdk)."""
+        schema = type(fmsg).get_schema()
+        cid = self.channels.get((topic, schema.name, schema.encoding))
+        if cid is None:
+            sid = self.schemas.get(schema.name)
+            if sid is None:
+                sid = self.writer.register_schema(schema.name, schema.encoding, bytes(schema.data))
+                self.schemas[schema.name] = sid
+            cid = self.writer.register_channel(topic, schema.encoding, sid, {"display": "foxglove"})
+            self.channels[(topic, schema.name, schema.encoding)] = cid
+        return cid
+
+    def add(self, cid: int, log_ns: int, data: bytes, pub_ns: int) -> None:
         self.sequence[cid] += 1
-        self.writer.add_message(cid, rec.log_ns, rec.payload, rec.pub_ns, self.sequence[cid])
+        self.writer.add_message(cid, log_ns, data, pub_ns, self.sequence[cid])
         self.messages += 1
         self.unflushed += 1
+
+    def write(self, rec: _Received) -> Message | None:
+        """Record one bus message (see the module doc); returns it decoded, or None if it does not decode."""
+        label, meta = _schema_of(rec.payload, rec.attachment)
+        msg: Message | None = None
+        if label != "unknown":
+            try:
+                msg = decode(rec.payload)
+            except WireError:
+                msg = None
+        data, encoding = rec.payload, MESSAGE_ENCODING
+        if msg is not None and label in JSON_SCHEMAS:
+            data, encoding = extract_header(rec.payload), JSON_ENCODING
+        self.add(self.channel(rec.key, label, meta, encoding), rec.log_ns, data, rec.pub_ns)
+        return msg
+
+    def write_display(self, items: list[tuple[str, Any]], log_ns: int) -> None:
+        for topic, fmsg in items:
+            self.add(self.display_channel(topic, fmsg), log_ns, fmsg.encode(), log_ns)
 
     def flush(self) -> None:
         if self.unflushed:
@@ -131,6 +167,18 @@ class _Segment:
         self.file.close()
 
 
+def _key_exprs(option: str, values: list[str] | None) -> list[zenoh.KeyExpr]:
+    out = []
+    for v in values or []:
+        try:
+            out.append(zenoh.KeyExpr(v))
+        except Exception as exc:  # zenoh.ZError: not a key expression
+            raise ValueError(
+                f"{option}: expected a zenoh key expression such as 'fp/*/rf', got {v!r} ({exc})"
+            ) from None
+    return out
+
+
 class Recorder(Node):
     """Records ``key_expr`` (default ``fp/**``) to ``path`` on an open session: ``with Recorder(s, path): ...``.
     Its liveliness token is ``fp/<rig>/alive/recorder`` (``fp/_any/alive/recorder`` when it records every rig)."""
@@ -143,17 +191,22 @@ class Recorder(Node):
         path: str | Path,
         key_expr: str = ALL_RIGS,
         rig: str | None = None,
-        compression: str = "none",
+        compression: str = "zstd",
         flush_interval: float = 0.5,
         max_bytes: int | None = None,
         max_seconds: float | None = None,
         chunk_size: int = 4 << 20,
         max_queue_bytes: int = 512 << 20,
+        include: list[str] | None = None,
+        exclude: list[str] | None = None,
+        display: bool = True,
     ) -> None:
         if compression not in COMPRESSION:
             raise ValueError(f"--compression: expected one of {', '.join(COMPRESSION)}, got {compression!r}")
         if flush_interval <= 0:
             raise ValueError(f"--flush-interval: expected > 0 s, got {flush_interval}")
+        self.include = _key_exprs("--include", include)
+        self.exclude = _key_exprs("--exclude", exclude)
         super().__init__(session, rig or "_any")
         self.path = Path(path)
         self.key_expr = self.keys.all if rig else key_expr
@@ -174,6 +227,19 @@ class Recorder(Node):
         self._segment: _Segment | None = None
         self._thread: threading.Thread | None = None
         self.error: str | None = None
+        self.display: Any = None
+        if display:
+            from services.viewing.foxglove_view import FoxgloveDisplay
+
+            self.display = FoxgloveDisplay()
+        self.skipped = 0  # messages left out by include/exclude
+
+    def wanted(self, key: str) -> bool:
+        """Whether ``key`` passes ``include`` (any, when given) and no ``exclude``."""
+        k = zenoh.KeyExpr(key)
+        if self.include and not any(e.intersects(k) for e in self.include):
+            return False
+        return not any(e.intersects(k) for e in self.exclude)
 
     @property
     def rotating(self) -> bool:
@@ -205,6 +271,9 @@ class Recorder(Node):
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         if self._stop.is_set():  # the writer has failed (see ``error``): nothing drains the queue any more
+            return
+        if (self.include or self.exclude) and not self.wanted(str(sample.key_expr)):
+            self.skipped += 1
             return
         log_ns = time.time_ns()
         ts = sample.timestamp
@@ -240,7 +309,9 @@ class Recorder(Node):
                 if rec is None and not idle:
                     break
                 if rec is not None:
-                    seg.write(rec)
+                    msg = seg.write(rec)
+                    if msg is not None and self.display is not None:
+                        seg.write_display(self.display.feed(rec.key, msg, rec.log_ns), rec.log_ns)
                     self.counts[rec.key] += 1
                     self.received += 1
                     with self._budget:
@@ -263,6 +334,9 @@ class Recorder(Node):
         finally:
             if self._segment is not None:
                 try:
+                    if self.display is not None and self.error is None:
+                        now = time.time_ns()
+                        self._segment.write_display(self.display.finish(now), now)
                     self._segment.finish()
                 except Exception:
                     log.exception("could not finish %s", self._segment.path)
@@ -273,5 +347,6 @@ class Recorder(Node):
             "files": [str(p) for p in self.files],
             "messages": self.received,
             "by_key": dict(self.counts),
+            "skipped": self.skipped,
             "error": self.error,
         }

@@ -1,19 +1,26 @@
-"""Recordings and the live bus to Rerun (`fp view`) (docs/design.md §2, §7 stack notes).
+"""Recordings and the live bus to Rerun (`fp view`, the ``rerun-loader-fingerprint`` data loader) (docs/design.md
+§2, §7 stack notes; docs/wire.md "MCAP recordings").
 
-`fp view REC.mcap --rrd out.rrd` (:func:`to_rrd`) decodes every FPWIRE01 message of a recording
-(``services.recording``) and logs it to Rerun natively (Rerun shows custom MCAP encodings only as
-blobs), on the timelines ``frame`` (sequence) and ``acquisition_time`` (the frames' source clock):
+:class:`RerunLog` decodes the bus messages (``services.recording``; Rerun shows custom MCAP encodings only as
+blobs) and logs them natively on the timelines ``frame`` (sequence) and ``acquisition_time`` (the frames'
+source clock). 3-D entities are in metres (``world``: x lateral, y elevation, z depth, z down):
 
-* ``world/gamma/<fingerprint>``: the γ-volume (``Volume3D``, float16; metres, z down);
-* ``world/detections/<fingerprint>``: detections (``Points3D``, radius = max Cramér–Rao precision);
-* ``world/tracks/<id>``: the positions of each track so far (``LineStrips3D``);
-* ``sections/<fingerprint>/{xz,yz}/{confocal,gamma}``: the confocal image in dB (grey, −30…0 dB) and γ
-  (``DepthImage`` with a colour map, values under ``threshold``·max left out) through the detection;
+* ``world/gamma/<fingerprint>``: the γ-volume (``Volume3D``, float16); a 2-D map is a textured quad in the
+  x–z plane (``Mesh3D``), not an empty volume;
+* ``world/probe``: the probe's elements (``Boxes3D``, pitch × pitch × 0.2 mm) from the RF frames;
+* ``world/truth``: the ground truth the RF frames carry (``Ellipsoids3D`` at the targets' diameters);
+* ``world/detections/<fingerprint>``: detections (``Points3D``, radius = the largest Cramér–Rao precision);
+* ``world/tracks/<id>``: each track's path (``LineStrips3D``), ``…/covariance`` its 3σ position ellipsoid
+  (``Ellipsoids3D``), ``…/velocity`` its velocity (``Arrows3D``, the distance travelled in 10 s);
+* ``sections/<fingerprint>/{xz,yz}/{confocal,gamma}``: the confocal image (grey, −30…0 dB) and γ (colour map,
+  values under ``threshold``·max left out) through the detection, in **millimetres**: each image carries a
+  ``Transform3D`` (pixel → mm: scale = grid step, translation = the first cell's corner), and the section's
+  ``detection``, ``truth`` (outline at the target's diameter) and ``probe`` (elements in the plane) are drawn
+  in mm on it;
 * ``series/<fingerprint>/{c_gamma,log10_pfa}`` and ``series/latency_ms/{median,p95}`` (``Scalars``).
 
-A default blueprint (sections, 3D view, time series) is stored in the ``.rrd``; open it with
-`rerun FILE.rrd`. `fp view --live` logs the bus as it runs (:func:`live_to_rrd`), optionally also to
-the loopback web viewer of ``services.viewing.server``.
+A default blueprint (sections, 3D view, time series) is stored with the data. `fp view --live` logs the bus
+as it runs (:func:`live_to_rrd`), optionally also to the loopback web viewer of ``services.viewing.server``.
 """
 
 from __future__ import annotations
@@ -28,65 +35,38 @@ from typing import Any
 
 import numpy as np
 
-from services.messages import (
-    ConfocalImage,
-    Detection,
-    Detections,
-    GammaMap,
-    Grid,
-    Message,
-    Status,
-    Tracks,
-)
-from services.recording import iter_messages
+from services.messages import ConfocalImage, Detections, GammaMap, Message, RFFrame, Status, Tracks
+from services.recording import RecordingError, iter_messages
 from services.topics import keys
-from services.viewing.figures import peak_position
+from services.viewing.display import DB_FLOOR, FrameAssembler, ReadyFrame, Section, confocal_db, sections, truth_targets
 from services.wire import WireError, decode
 
-__all__ = ["live_to_rrd", "to_rrd"]
+__all__ = ["RerunLog", "live_to_rrd", "log_recording", "to_rrd"]
 
-DB_FLOOR = -30.0
-
-
-def _db(image: np.ndarray, scale: str = "linear") -> np.ndarray:
-    """Confocal image in dB relative to its maximum (already dB: shifted so the max is 0)."""
-    if scale == "db":
-        return image - float(np.max(image))
-    return 10 * np.log10(image / max(float(np.max(image)), 1e-30) + 1e-12)
+MM = 1e3
+ARROW_SECONDS = 10.0
 
 
-def _nearest(axis: np.ndarray, v: float) -> int:
-    return int(np.argmin(np.abs(axis - v)))
-
-
-def _sections(grid: Grid, vol: np.ndarray, at: np.ndarray) -> dict[str, np.ndarray]:
-    """Sections through ``at`` (rows = z): ``xz`` (2D and 3D) and ``yz`` (3D)."""
-    if grid.y is None:
-        return {"xz": vol.T}
-    i, j = _nearest(grid.x, float(at[0])), _nearest(grid.y, float(at[1]))
-    return {"xz": vol[:, j, :].T, "yz": vol[i, :, :].T}
+def _frame_of(h: str) -> int:
+    return 0 if h == "x" else 1
 
 
 @dataclass
-class _Frame:
-    gamma: dict[str, GammaMap] = field(default_factory=dict)
-    image: ConfocalImage | None = None
-    detections: dict[str, Detection] | None = None
-    done: set[str] = field(default_factory=set)
-
-
-@dataclass
-class _Converter:
-    """Streams decoded messages into a Rerun recording stream."""
+class RerunLog:
+    """Streams decoded messages into a Rerun recording stream (see the module doc for the entities)."""
 
     rec: Any
     threshold: float = 0.6
-    frames: dict[int, _Frame] = field(default_factory=dict)
+    prefix: str = ""
+    frames: FrameAssembler = field(default_factory=FrameAssembler)
     fingerprints: list[str] = field(default_factory=list)
     track_paths: dict[int, list[tuple[float, float, float]]] = field(default_factory=dict)
     logged: Counter[str] = field(default_factory=Counter)
     frame_indices: set[int] = field(default_factory=set)
     has_3d: bool = False
+    probe: np.ndarray | None = None
+    pitch: float = 3e-4
+    truth: dict[int, list[tuple[str, np.ndarray, float | None]]] = field(default_factory=dict)
 
     def _time(self, frame_index: int, timestamp: float) -> None:
         self.rec.set_time("frame", sequence=frame_index)
@@ -96,9 +76,14 @@ class _Converter:
             self.rec.set_time("acquisition_time", duration=timestamp)
         self.frame_indices.add(frame_index)
 
-    def _log(self, path: str, archetype: Any) -> None:
-        self.rec.log(path, archetype)
+    def _log(self, path: str, archetype: Any, *extra: Any, static: bool = False) -> None:
+        self.rec.log(f"{self.prefix}{path}", archetype, *extra, static=static)
         self.logged[path] += 1
+
+    def start(self) -> None:
+        import rerun as rr
+
+        self._log("world", rr.ViewCoordinates.RIGHT_HAND_Z_DOWN, static=True)
 
     def feed(self, msg: Message) -> None:
         import rerun as rr
@@ -111,19 +96,17 @@ class _Converter:
                 if v is not None:
                     self._log(f"series/latency_ms/{stat}", rr.Scalars(v))
             return
+        if isinstance(msg, RFFrame):
+            self._rf(msg)
+            return
         if not isinstance(msg, (GammaMap, ConfocalImage, Detections, Tracks)):
             return
         self._time(msg.frame_index, msg.timestamp)
-        fr = self.frames.setdefault(msg.frame_index, _Frame())
         if isinstance(msg, GammaMap):
             if msg.fingerprint not in self.fingerprints:
                 self.fingerprints.append(msg.fingerprint)
-            fr.gamma[msg.fingerprint] = msg
             self._volume(msg)
-        elif isinstance(msg, ConfocalImage):
-            fr.image = msg
         elif isinstance(msg, Detections):
-            fr.detections = {d.fingerprint: d for d in msg.detections}
             for d in msg.detections:
                 self._log(
                     f"world/detections/{d.fingerprint}",
@@ -135,20 +118,95 @@ class _Converter:
                 )
                 self._log(f"series/{d.fingerprint}/c_gamma", rr.Scalars(d.contrast_c_gamma))
                 self._log(f"series/{d.fingerprint}/log10_pfa", rr.Scalars(math.log10(max(d.pfa, 1e-300))))
-        else:
-            for t in msg.tracks:
-                pts = self.track_paths.setdefault(t.id, [])
-                pts.append(t.position_m)
-                self._log(f"world/tracks/{t.id}", rr.LineStrips3D([pts], labels=[f"track {t.id} {t.fingerprint}"]))
-        self._sections(msg.frame_index, final=False)
-        for old in [k for k in self.frames if k < msg.frame_index - 8]:
-            self._sections(old, final=True)
+        elif isinstance(msg, Tracks):
+            self._tracks(msg)
+        for ready in self.frames.feed(msg):
+            self._sections(ready)
+
+    def finish(self) -> None:
+        for ready in self.frames.finish():
+            self._sections(ready)
+
+    # -- entities ---------------------------------------------------------------------------------------
+    def _rf(self, msg: RFFrame) -> None:
+        import rerun as rr
+
+        pos = np.asarray(msg.probe.positions, float)
+        if self.probe is None or self.probe.shape != pos.shape or not np.array_equal(self.probe, pos):
+            self.probe, self.pitch = pos, float(msg.probe.pitch)
+            half = [0.45 * self.pitch, 0.45 * self.pitch, 0.1e-3]
+            self._log(
+                "world/probe", rr.Boxes3D(centers=pos, half_sizes=[half] * len(pos), colors=[150, 150, 180]), static=True
+            )
+        targets = truth_targets(msg)
+        self.truth[msg.frame_index] = targets
+        for k in [k for k in self.truth if k < msg.frame_index - 16]:
+            del self.truth[k]
+        if targets:
+            self._time(msg.frame_index, msg.timestamp)
+            self._log(
+                "world/truth",
+                rr.Ellipsoids3D(
+                    centers=[p for _n, p, _d in targets],
+                    radii=[(d or 1e-3) / 2 for _n, _p, d in targets],
+                    labels=[f"truth {n}" for n, _p, _d in targets],
+                    colors=[60, 200, 80],
+                    fill_mode="MajorWireframe",
+                ),
+            )
+
+    def _tracks(self, msg: Tracks) -> None:
+        import rerun as rr
+
+        for t in msg.tracks:
+            pts = self.track_paths.setdefault(t.id, [])
+            pts.append(t.position_m)
+            base = f"world/tracks/{t.id}"
+            self._log(base, rr.LineStrips3D([pts], labels=[f"track {t.id} {t.fingerprint}"]))
+            c = np.asarray(t.covariance, float)
+            w, v = np.linalg.eigh(0.5 * (c + c.T))
+            if np.linalg.det(v) < 0:
+                v[:, 2] *= -1
+            from scipy.spatial.transform import Rotation
+
+            self._log(
+                f"{base}/covariance",
+                rr.Ellipsoids3D(
+                    centers=[t.position_m],
+                    half_sizes=[3 * np.sqrt(np.clip(w, 0, None))],
+                    quaternions=[rr.Quaternion(xyzw=Rotation.from_matrix(v).as_quat())],
+                    colors=[60, 150, 255],
+                ),
+            )
+            self._log(
+                f"{base}/velocity",
+                rr.Arrows3D(
+                    origins=[t.position_m], vectors=[np.asarray(t.velocity_m_s) * ARROW_SECONDS], colors=[60, 150, 255]
+                ),
+            )
 
     def _volume(self, g: GammaMap) -> None:
         import rerun as rr
 
         grid = g.grid
-        if grid.y is None:
+        gmax = max(float(np.max(g.gamma)), 1e-30)
+        if grid.y is None:  # a 2-D map: a textured quad in the x–z plane (metres)
+            import matplotlib
+
+            dx, dz = Section("xz", g.gamma.T, grid.x, grid.z, 0.0).step
+            x0, x1 = float(grid.x[0]) - dx / 2, float(grid.x[-1]) + dx / 2
+            z0, z1 = float(grid.z[0]) - dz / 2, float(grid.z[-1]) + dz / 2
+            rgba = matplotlib.colormaps["inferno"](np.clip(g.gamma.T / gmax, 0, 1))
+            rgba[..., 3] = np.where(g.gamma.T >= self.threshold * gmax, 1.0, 0.25)
+            self._log(
+                f"world/gamma/{g.fingerprint}",
+                rr.Mesh3D(
+                    vertex_positions=[[x0, 0, z0], [x1, 0, z0], [x1, 0, z1], [x0, 0, z1]],
+                    triangle_indices=[[0, 1, 2], [0, 2, 3]],
+                    vertex_texcoords=[[0, 0], [1, 0], [1, 1], [0, 1]],
+                    albedo_texture=(rgba * 255).astype(np.uint8),
+                ),
+            )
             return
         self.has_3d = True
         step = [float(np.mean(np.diff(a))) if a.size > 1 else 1e-4 for a in (grid.x, grid.y, grid.z)]
@@ -160,76 +218,125 @@ class _Converter:
                 values,
                 voxel_size=step,
                 translation=corner,
-                value_range=(self.threshold * float(np.max(g.gamma)), float(np.max(g.gamma))),
+                value_range=(self.threshold * gmax, gmax),
                 colormap="inferno",
             ),
         )
 
-    def _sections(self, frame_index: int, final: bool) -> None:
-        """Log the sections of a frame's γ-maps once its image and detections are in (or at the end)."""
+    def _sections(self, fr: ReadyFrame) -> None:
+        """Log a frame's sections (through each fingerprint's detection) in millimetres."""
         import rerun as rr
 
-        fr = self.frames.get(frame_index)
-        if fr is None:
-            return
-        if not final and (fr.image is None or fr.detections is None):
-            return
-        for name, g in fr.gamma.items():
-            if name in fr.done:
-                continue
-            det = (fr.detections or {}).get(name)
-            at = np.array(det.position_m) if det is not None else peak_position(g.grid, g.gamma)
-            self._time(frame_index, g.timestamp)
+        conf = confocal_db(fr.image) if fr.image is not None else None
+        truths = self.truth.get(fr.frame_index, [])
+        for g, at, det in fr.gammas:
+            self._time(fr.frame_index, g.timestamp)
             gmax = float(np.max(g.gamma))
-            gam = _sections(g.grid, g.gamma, at)
-            conf = _sections(fr.image.grid, _db(fr.image.image, fr.image.scale), at) if fr.image is not None else {}
-            for plane, gimg in gam.items():
-                base = f"sections/{name}/{plane}"
-                if plane in conf and conf[plane].shape == gimg.shape:
-                    grey = np.clip((conf[plane] - DB_FLOOR) / -DB_FLOOR * 255, 0, 255).astype(np.uint8)
-                    self._log(f"{base}/confocal", rr.Image(grey, draw_order=0.0))
-                shown = np.where(gimg >= self.threshold * gmax, gimg, 0).astype(np.float32)
-                self._log(
-                    f"{base}/gamma",
-                    rr.DepthImage(
-                        shown, meter=1.0, colormap="inferno", depth_range=(self.threshold * gmax, gmax), draw_order=1.0
-                    ),
+            csec = {s.plane: s for s in sections(fr.image.grid, conf, at)} if conf is not None and fr.image else {}
+            for sec in sections(g.grid, g.gamma, at):
+                base = f"sections/{g.fingerprint}/{sec.plane}"
+                c = csec.get(sec.plane)
+                if c is not None and c.data.shape == sec.data.shape:
+                    grey = np.clip((c.data - DB_FLOOR) / -DB_FLOOR * 255, 0, 255).astype(np.uint8)
+                    self._image(f"{base}/confocal", sec, rr.Image(grey, draw_order=0.0))
+                shown = np.where(sec.data >= self.threshold * gmax, sec.data, 0).astype(np.float32)
+                img = rr.DepthImage(
+                    shown, meter=1.0, colormap="inferno", depth_range=(self.threshold * gmax, gmax), draw_order=1.0
                 )
-            fr.done.add(name)
-        if final:
-            del self.frames[frame_index]
+                self._image(f"{base}/gamma", sec, img)
+                self._overlays(base, sec, at if det is not None else None, truths)
 
-    def finish(self) -> None:
-        for k in sorted(self.frames):
-            self._sections(k, final=True)
+    def _image(self, path: str, sec: Section, archetype: Any) -> None:
+        """An image whose pixels are placed in mm by a Transform3D (scale = the grid step)."""
+        import rerun as rr
+
+        dh, dz = sec.step
+        corner = [(float(sec.h[0]) - dh / 2) * MM, (float(sec.z[0]) - dz / 2) * MM, 0.0]
+        self._log(path, rr.Transform3D(translation=corner, scale=[dh * MM, dz * MM, 1.0]), archetype)
+
+    def _overlays(
+        self, base: str, sec: Section, det: np.ndarray | None, truths: list[tuple[str, np.ndarray, float | None]]
+    ) -> None:
+        import rerun as rr
+
+        h = _frame_of(sec.plane[0])  # index of the horizontal coordinate in [x, y, z]
+        normal = 1 - h  # xz: y is the normal; yz: x
+        if det is not None:
+            self._log(
+                f"{base}/detection",
+                rr.Points2D([[det[h] * MM, det[2] * MM]], radii=[0.3], colors=[255, 60, 30], draw_order=3.0),
+            )
+        circles = []
+        for _n, p, d in truths:
+            r = (d or 1e-3) / 2
+            if abs(p[normal] - sec.at) < r:  # the plane cuts the target
+                rc = math.sqrt(max(r * r - (p[normal] - sec.at) ** 2, 0.0))
+                t = np.linspace(0, 2 * np.pi, 49)
+                circles.append(np.stack([(p[h] + rc * np.cos(t)) * MM, (p[2] + rc * np.sin(t)) * MM], 1))
+        if circles:
+            self._log(f"{base}/truth", rr.LineStrips2D(circles, colors=[60, 200, 80], draw_order=2.0))
+        if self.probe is not None:
+            on = self.probe[np.abs(self.probe[:, normal] - sec.at) <= self.pitch / 2 + 1e-9]
+            if len(on):
+                pts = np.stack([on[:, h] * MM, on[:, 2] * MM], 1)
+                self._log(f"{base}/probe", rr.Points2D(pts, radii=[self.pitch * MM * 0.4], colors=[150, 150, 180]))
 
     def blueprint(self) -> Any:
         import rerun.blueprint as rrb
 
         planes = ("xz", "yz") if self.has_3d else ("xz",)
-        sections = [
-            rrb.Spatial2DView(origin=f"sections/{fp}/{p}", name=f"{fp} {p}: γ over confocal (dB)")
+        secs = [
+            rrb.Spatial2DView(origin=f"{self.prefix}sections/{fp}/{p}", name=f"{fp} {p} (mm): γ over confocal (dB)")
             for fp in self.fingerprints
             for p in planes
         ]
         series = [
-            rrb.TimeSeriesView(origin="series", contents=f"series/*/{k}/**", name=name)
+            rrb.TimeSeriesView(origin=f"{self.prefix}series", contents=f"{self.prefix}series/*/{k}/**", name=name)
             for k, name in (("c_gamma", "C_γ"), ("log10_pfa", "log10 PFA"))
         ]
-        series.append(rrb.TimeSeriesView(origin="series/latency_ms", name="latency (ms)"))
+        series.append(rrb.TimeSeriesView(origin=f"{self.prefix}series/latency_ms", name="latency (ms)"))
         return rrb.Blueprint(
             rrb.Horizontal(
-                rrb.Grid(*sections, name="sections") if sections else rrb.Spatial2DView(origin="sections"),
-                rrb.Vertical(rrb.Spatial3DView(origin="world", name="3D"), rrb.Vertical(*series)),
+                rrb.Grid(*secs, name="sections") if secs else rrb.Spatial2DView(origin=f"{self.prefix}sections"),
+                rrb.Vertical(rrb.Spatial3DView(origin=f"{self.prefix}world", name="3D (m)"), rrb.Vertical(*series)),
                 column_shares=[2, 1],
             ),
             collapse_panels=False,
         )
 
 
+def log_recording(recording: str | Path, rec: Any, *, threshold: float = 0.6, prefix: str = "") -> dict[str, Any]:
+    """Log every bus message of an MCAP recording to the stream ``rec``; RecordingError if nothing could be read."""
+    conv = RerunLog(rec, threshold=threshold, prefix=prefix)
+    conv.start()
+    report: dict[str, Any] = {}
+    n = 0
+    for _key, msg in iter_messages(recording, report):
+        conv.feed(msg)
+        n += 1
+    conv.finish()
+    if n == 0:
+        damage = f"; {report['error']}" if report.get("error") else ""
+        raise RecordingError(
+            f"{recording}: no fingerprint message could be read ({report.get('undecodable', 0)} undecodable, "
+            f"{report.get('corrupted_chunks', 0)} corrupted chunk(s){damage})"
+        )
+    return {
+        "messages": n,
+        "undecodable": report.get("undecodable", 0),
+        "corrupted_chunks": report.get("corrupted_chunks", 0),
+        "error": report.get("error"),
+        "frames": sorted(conv.frame_indices),
+        "fingerprints": list(conv.fingerprints),
+        "logged": dict(conv.logged),
+        "blueprint": conv.blueprint(),
+    }
+
+
 def to_rrd(recording: str | Path, rrd: str | Path, *, threshold: float = 0.6) -> dict[str, Any]:
-    """Convert an MCAP recording to a Rerun ``.rrd`` (with a default blueprint); returns the frame
-    indices logged, the fingerprints and the number of logs per entity."""
+    """Convert an MCAP recording to a Rerun ``.rrd`` (with a default blueprint); returns the frame indices
+    logged, the fingerprints and the number of logs per entity. RecordingError (no .rrd left) when the file
+    is not an MCAP or holds no readable fingerprint message."""
     import rerun as rr
 
     recording, rrd = Path(recording), Path(rrd)
@@ -237,26 +344,16 @@ def to_rrd(recording: str | Path, rrd: str | Path, *, threshold: float = 0.6) ->
         raise FileNotFoundError(f"{recording}: no such file")
     rec = rr.RecordingStream("fingerprint", recording_id=recording.stem)
     rec.save(rrd)
-    rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_DOWN, static=True)
-    conv = _Converter(rec, threshold=threshold)
-    report: dict[str, Any] = {}
-    n = 0
-    for _key, msg in iter_messages(recording, report):
-        conv.feed(msg)
-        n += 1
-    conv.finish()
-    rec.send_blueprint(conv.blueprint(), make_active=True, make_default=True)
+    try:
+        out = log_recording(recording, rec, threshold=threshold)
+    except Exception:
+        rec.disconnect()
+        rrd.unlink(missing_ok=True)
+        raise
+    rec.send_blueprint(out.pop("blueprint"), make_active=True, make_default=True)
     rec.flush()
     rec.disconnect()
-    return {
-        "rrd": str(rrd),
-        "messages": n,
-        "undecodable": report.get("undecodable", 0),
-        "error": report.get("error"),
-        "frames": sorted(conv.frame_indices),
-        "fingerprints": list(conv.fingerprints),
-        "logged": dict(conv.logged),
-    }
+    return {"rrd": str(rrd), **out}
 
 
 def live_to_rrd(
@@ -270,13 +367,13 @@ def live_to_rrd(
     stats: dict[str, int] | None = None,
     grpc_url: str | None = None,
 ) -> dict[str, Any]:
-    """Subscribe to the processor's outputs on ``fp/<rig>/{gamma,image,detections,tracks,status}`` and
-    log them to a Rerun ``.rrd`` as they arrive (same entities and blueprint as `to_rrd`), until
-    `duration` seconds pass or `stop` (a threading.Event; default: SIGINT/SIGTERM) is set. Announces
-    itself with the liveliness token ``fp/<rig>/alive/viewer``. Raw RF frames are not subscribed.
-    `stats` (optional) is updated live with the counts of messages logged, undecodable and dropped.
-    With ``grpc_url`` (a Rerun gRPC proxy, e.g. `serve_loopback`'s) the same stream also goes there, and
-    the blueprint is re-sent whenever a new fingerprint appears."""
+    """Subscribe to ``fp/<rig>/{rf,gamma,image,detections,tracks,status}`` and log the messages to a Rerun
+    ``.rrd`` as they arrive (same entities and blueprint as `to_rrd`; RF frames give the probe and the ground
+    truth), until `duration` seconds pass or `stop` (a threading.Event; default: SIGINT/SIGTERM) is set.
+    Announces itself with the liveliness token ``fp/<rig>/alive/viewer``. `stats` (optional) is updated live
+    with the counts of messages logged, undecodable and dropped. With ``grpc_url`` (a Rerun gRPC proxy, e.g.
+    `serve_loopback`'s) the same stream also goes there, and the blueprint is re-sent whenever a new
+    fingerprint appears."""
     import rerun as rr
 
     from services.bus import open_session, sample_bytes, stop_on_signals
@@ -287,8 +384,8 @@ def live_to_rrd(
         rec.set_sinks(rr.FileSink(str(rrd)), rr.GrpcSink(grpc_url))
     else:
         rec.save(rrd)
-    rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_DOWN, static=True)
-    conv = _Converter(rec, threshold=threshold)
+    conv = RerunLog(rec, threshold=threshold)
+    conv.start()
     layout: tuple[tuple[str, ...], bool] = ((), False)
     inbox: queue.Queue[bytes] = queue.Queue(maxsize=512)
     stats = stats if stats is not None else {}
@@ -316,7 +413,7 @@ def live_to_rrd(
     with open_session(bus) as session:
         subs = [
             session.declare_subscriber(k.topic(t), on_sample)
-            for t in ("gamma", "image", "detections", "tracks", "status")
+            for t in ("rf", "gamma", "image", "detections", "tracks", "status")
         ]
         token = session.liveliness().declare_token(k.alive("viewer"))
         t_end = time.monotonic() + duration if duration else math.inf

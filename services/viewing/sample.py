@@ -1,6 +1,7 @@
-"""The shipped sample recording (``recordings/sinking-sphere-quick.mcap``): the quick sinking-sphere
-scenario run through the whole pipeline (``services.nodes.local.run_pipeline``), recorded, and copied
-without the raw RF frames so that it stays small (tests/test_viewer.py reads it).
+"""The shipped sample recording (``recordings/sinking-sphere-quick.mcap``): the quick sinking-sphere scenario,
+digitised by a ``adc_bits`` ADC as a scanner would (int16 RF with its scale), run through the whole pipeline
+(``services.nodes.local.run_pipeline``) and recorded with its RF, so that `fp publish --mcap` replays it,
+`fp view` and `fp figure` show it and Foxglove opens it (tests/test_viewer.py, tests/test_foxglove_recording.py).
 """
 
 from __future__ import annotations
@@ -14,23 +15,26 @@ __all__ = ["make_sample_recording"]
 
 
 def make_sample_recording(
-    path: str | Path, n_frames: int = 4, spacing: float = 0.5e-3, drop: tuple[str, ...] = ("rf",)
+    path: str | Path, n_frames: int = 3, spacing: float = 0.5e-3, adc_bits: int = 10, drop: tuple[str, ...] = ()
 ) -> dict[str, int]:
-    """Record the quick sinking-sphere scenario with the project's pipeline (the scenario's region of
-    interest, grid step ``spacing``) and copy it to ``path`` without the ``drop`` topics (RF frames: ~9 MB each).
-    Returns the message count per key."""
+    """Record the quick sinking-sphere scenario with the project's pipeline (the scenario's region of interest,
+    grid step ``spacing``; RF through an ``adc_bits`` ADC) and copy it to ``path`` (zstd chunks) without the
+    ``drop`` topics. Returns the message count per key."""
     from mcap.writer import CompressionType, Writer
 
     from fpcore.simulate import scenario
+    from services.convert import QuantisedSource
     from services.nodes.local import run_pipeline
     from services.nodes.processor import ProcessorConfig
+    from services.sources import SimulatorSource
 
     roi = scenario("sinking-sphere", quick=True).roi
     assert roi is not None  # the scenario defines the region it is imaged over
     grid = roi.grid(spacing)
+    source = QuantisedSource(SimulatorSource("sinking-sphere", n_frames=n_frames, quick=True), adc_bits)
     with tempfile.TemporaryDirectory() as tmp:
         summary = run_pipeline(
-            "sinking-sphere",
+            source,
             rig="demo",
             out_dir=tmp,
             n_frames=n_frames,
@@ -40,18 +44,18 @@ def make_sample_recording(
             m
             for src in summary["recording"]["files"]
             for m in iter_raw(src)
-            if m[1].topic.rsplit("/", 1)[-1] not in drop
+            if m[1].topic.split("/")[2] not in drop
         )
         with open(path, "wb") as f:
-            w = Writer(f, compression=CompressionType.NONE)
+            w = Writer(f, compression=CompressionType.ZSTD)
             w.start(profile="", library="fingerprint services.viewing.sample")
             w.add_metadata(
                 "fingerprint",
                 {
                     "wire": "FPWIRE01",
                     "message_encoding": MESSAGE_ENCODING,
-                    "sample": f"sinking-sphere quick, {n_frames} frames, grid step "
-                    f"{spacing * 1e3:g} mm, without {', '.join(drop)}",
+                    "sample": f"sinking-sphere quick, {n_frames} frames, {adc_bits}-bit RF, grid step "
+                    f"{spacing * 1e3:g} mm" + (f", without {', '.join(drop)}" if drop else ""),
                 },
             )
             kept = copy_messages(w, sources)
