@@ -15,6 +15,7 @@ import traceback
 
 import fpcore
 from services.cli.characterise import add_characterise_parser
+from services.cli.convert import add_convert_parser
 from services.cli.demo import add_demo_parser
 from services.cli.figure import add_figure_parser
 from services.cli.locate import add_locate_parser
@@ -38,6 +39,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_track_parser(sub)
     add_simulate_parser(sub)
     add_characterise_parser(sub)
+    add_convert_parser(sub)  # PICMUS / UFF / MCAP (issue 14)
     # Streaming nodes (issue 4): each registers its subcommand and handler (docs/design.md §2, §7).
     add_publish_parser(sub)
     add_process_parser(sub)
