@@ -53,6 +53,7 @@ __all__ = [
     "iter_recording",
     "json_to_wire",
     "recover",
+    "topic_counts",
     "wire_payload",
 ]
 
@@ -115,11 +116,23 @@ def _chunk_records(chunk: Chunk) -> list[Any]:
     return out
 
 
+def _summary(path: Path) -> Any:
+    """The summary section of a complete file (None for a file whose writer was killed, or a damaged one)."""
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as f:
+            return make_reader(f, validate_crcs=False).get_summary()
+    except Exception:
+        return None
+
+
 def iter_raw(path: str | Path, report: dict[str, Any] | None = None) -> Iterator[RawMessage]:
     """Every message of an MCAP file in file order, read sequentially (no summary needed: a file whose
     writer was killed gives all its complete chunks). Each chunk's CRC is checked: a corrupted chunk is
-    skipped and counted in ``report["corrupted_chunks"]``; damage that stops the reading is noted in
-    ``report["error"]`` instead of raising. Raises :class:`RecordingError` if the file is not an MCAP."""
+    skipped and counted in ``report["corrupted_chunks"]`` (and messages whose channel only it declared, in
+    ``report["orphaned_messages"]``, unless the file's summary declares it); damage that stops the reading is
+    noted in ``report["error"]`` instead of raising. Raises :class:`RecordingError` if the file is not an MCAP."""
     path = Path(path)
     _check_magic(path)
     rep = report if report is not None else {}
@@ -136,10 +149,16 @@ def iter_raw(path: str | Path, report: dict[str, Any] | None = None) -> Iterator
                 channels[r.id] = r
             elif isinstance(r, McapMessage):
                 ch = channels.get(r.channel_id)
-                if ch is None:
-                    raise McapError(f"message on channel {r.channel_id}, which no channel record declares")
+                if ch is None:  # declared in a corrupted chunk, and the file has no summary to say what it was
+                    rep["orphaned_messages"] += 1
+                    continue
                 yield schemas.get(ch.schema_id), ch, r
 
+    rep["orphaned_messages"] = 0
+    summary = _summary(path)  # a complete file repeats its schemas and channels there
+    if summary is not None:
+        schemas.update(summary.schemas)
+        channels.update(summary.channels)
     with open(path, "rb") as f:
         reader = StreamReader(f, emit_chunks=True, record_size_limit=RECORD_SIZE_LIMIT)
         try:
@@ -157,6 +176,25 @@ def iter_raw(path: str | Path, report: dict[str, Any] | None = None) -> Iterator
                 yield from records(inner)
         except (McapError, struct.error, ValueError, EOFError, MemoryError, zlib.error) as exc:
             rep["error"] = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+
+
+def topic_counts(path: str | Path) -> Counter[str]:
+    """Messages per key of the bus channels of a recording: from its summary when it has one, else by
+    reading it through. RecordingError if it is not an MCAP."""
+    path = Path(path)
+    _check_magic(path)
+    summary = _summary(path)
+    counts: Counter[str] = Counter()
+    if summary is not None and summary.statistics is not None:
+        for cid, n in summary.statistics.channel_message_counts.items():
+            ch = summary.channels.get(cid)
+            if ch is not None and ch.message_encoding in (MESSAGE_ENCODING, JSON_ENCODING):
+                counts[ch.topic] += n
+        return counts
+    for _schema, ch, _msg in iter_raw(path):
+        if ch.message_encoding in (MESSAGE_ENCODING, JSON_ENCODING):
+            counts[ch.topic] += 1
+    return counts
 
 
 def json_to_wire(data: bytes) -> bytes:
@@ -259,7 +297,7 @@ def recover(broken: str | Path, fixed: str | Path | None = None) -> dict[str, An
     report.update(
         messages=sum(by_key.values()),
         by_key=dict(by_key),
-        complete=report["error"] is None and report["corrupted_chunks"] == 0,
+        complete=report["error"] is None and report["corrupted_chunks"] == 0 and report["orphaned_messages"] == 0,
         first_log_time_ns=span.get("first"),
         last_log_time_ns=span.get("last"),
     )

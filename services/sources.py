@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from services.messages import RFFrame
-from services.recording import iter_recording
+from services.recording import iter_recording, topic_counts
 from services.registry import FingerprintSpec
 from services.topics import keys, parse_key
 from services.wire import decode_header, encode_with_header, extract_header
@@ -185,6 +185,14 @@ class UFFSource(AcquisitionSource):
         super().__init__(read_uff(self.path, dataset), repeat=repeat)
 
 
+def _is_rf(key: str, rig: str | None) -> bool:
+    try:
+        r, topic = parse_key(key)
+    except ValueError:
+        return False
+    return topic == "rf" and (rig is None or r == rig)
+
+
 class MCAPSource:
     """The ``…/rf`` messages of a recording (same bytes), with their log times for original timing.
 
@@ -198,6 +206,14 @@ class MCAPSource:
         self.repeat = repeat
         if not self.path.is_file():
             raise FileNotFoundError(f"{self.path}: no such recording")
+        rf = {k: n for k, n in topic_counts(self.path).items() if _is_rf(k, from_rig)}
+        if not rf:
+            which = f"fp/{from_rig}/rf" if from_rig else "fp/<rig>/rf"
+            raise ValueError(
+                f"--mcap: {self.path} holds no RF frames ({which} messages) to replay; record with the rf "
+                "topic included (`fp record` keeps it unless --exclude leaves it out)"
+            )
+        self.frames = sum(rf.values())
 
     def __iter__(self) -> Iterator[Item]:
         for _ in range(self.repeat):

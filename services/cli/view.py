@@ -1,13 +1,17 @@
-"""`fp view`: a recording (or the live bus) to a Rerun ``.rrd`` (``services.viewing.rerun_log``), and with
-``--serve`` in the Rerun web viewer on 127.0.0.1 only (``services.viewing.server``).
+"""`fp view`: a recording (or the live bus) to a Rerun ``.rrd`` (``services.viewing.rerun_log``), with
+``--serve`` in the Rerun web viewer on 127.0.0.1 only (``services.viewing.server``); ``--live --foxglove``
+serves the bus to the Foxglove app on a loopback WebSocket (``services.viewing.foxglove_live``). A file that
+is not an MCAP, or holds nothing readable, is refused (exit 2).
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any
 
+from services.viewing.foxglove_live import DEFAULT_FOXGLOVE_PORT
 from services.viewing.rerun_log import live_to_rrd, to_rrd
 from services.viewing.server import (
     DEFAULT_GRPC_PORT,
@@ -27,6 +31,8 @@ def run_view(args: argparse.Namespace) -> int:
 
     if args.duration is not None and args.duration <= 0:
         raise ValueError(f"--duration: expected seconds > 0, got {args.duration:g}")
+    if args.foxglove:
+        return _foxglove(args)
     if args.serve:
         check_ports(args.port, args.grpc_port)  # before a conversion that may take a while
     if args.live:
@@ -58,17 +64,44 @@ def run_view(args: argparse.Namespace) -> int:
     if not args.recording:
         raise ValueError("recording: give an MCAP file, or --live to follow the bus")
     rrd = Path(args.rrd) if args.rrd else Path(args.recording).with_suffix(".rrd")
-    out = to_rrd(args.recording, rrd, threshold=args.threshold)
+    out = to_rrd(args.recording, rrd, threshold=args.threshold)  # RecordingError (exit 2): nothing readable
     print(
         f"{out['rrd']}: {len(out['frames'])} frames, {out['messages']} messages "
         f"({out['undecodable']} undecodable), fingerprints {', '.join(out['fingerprints']) or 'none'}",
         flush=True,
     )
+    if out["corrupted_chunks"] or out["error"]:
+        print(
+            f"fp view: warning: {args.recording} is damaged: {out['corrupted_chunks']} corrupted chunk(s) skipped"
+            f"{'; reading stopped at ' + out['error'] if out['error'] else ''} (`fp recover` salvages the rest)",
+            file=sys.stderr,
+        )
     if args.serve:
         stop = stop_on_signals()
         with serve_loopback(rrd, port=args.port, grpc_port=args.grpc_port) as viewer:
             print(f"Rerun web viewer (loopback only): {viewer.url}  (Ctrl-C stops)", flush=True)
             serve_until_stopped(viewer, stop, args.duration)
+    return 0
+
+
+def _foxglove(args: argparse.Namespace) -> int:
+    """`fp view --live --foxglove`: the bus to the Foxglove app over a loopback WebSocket."""
+    from services.bus import bus_from_args, stop_on_signals
+    from services.viewing.foxglove_live import serve_foxglove
+
+    if not args.live:
+        raise ValueError(
+            "--foxglove: serves the live bus (add --live); a recording opens in Foxglove directly (File → Open)"
+        )
+    out = serve_foxglove(
+        bus_from_args(args),
+        args.rig,
+        port=args.foxglove_port,
+        duration=args.duration,
+        stop=stop_on_signals(),
+        on_ready=lambda url: print(f"Foxglove WebSocket (loopback only): {url}  (Ctrl-C stops)", flush=True),
+    )
+    print(f"{out['url']}: {out['messages']} messages ({out['undecodable']} undecodable, {out['dropped']} dropped)")
     return 0
 
 
@@ -113,6 +146,19 @@ def add_view_parser(sub: Any) -> argparse.ArgumentParser:
         type=int,
         default=DEFAULT_GRPC_PORT,
         help=f"port of the gRPC proxy the page reads the data from (default {DEFAULT_GRPC_PORT})",
+    )
+    f = p.add_argument_group("Foxglove (--live --foxglove)", "The WebSocket binds 127.0.0.1 only, like --serve.")
+    f.add_argument(
+        "--foxglove",
+        action="store_true",
+        help="with --live: serve the bus to the Foxglove app (JSON messages and display channels) on a "
+        "loopback WebSocket instead of writing a .rrd",
+    )
+    f.add_argument(
+        "--foxglove-port",
+        type=int,
+        default=DEFAULT_FOXGLOVE_PORT,
+        help=f"port of the Foxglove WebSocket (default {DEFAULT_FOXGLOVE_PORT}; 0: any free port)",
     )
     from services.bus import DEFAULT_HUB, EPHEMERAL, add_bus_arguments
 
