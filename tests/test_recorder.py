@@ -164,3 +164,83 @@ def test_recover_truncated_file_keeps_complete_chunks(tmp_path, compression) -> 
     kept = [wire_payload(c, m) for _, c, m in iter_raw(tmp_path / "cut_fixed.mcap")]
     assert not rep["complete"] and rep["error"]
     assert rep["messages"] == len(kept) == 30 and kept == msgs[:30]
+
+
+@pytest.mark.timeout(60)
+def test_include_and_exclude_key_expressions(tmp_path) -> None:
+    """--include narrows what is recorded, --exclude leaves keys out; the rest is recorded (zstd by default)."""
+    port = free_port()
+    path = tmp_path / "sel.mcap"
+    rf = encode(examples()["RFFrame"])
+    with (
+        open_session(BusConfig(listen=[f"tcp/127.0.0.1:{port}"], connect=[])) as s_rec,
+        open_session(BusConfig(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"])) as s,
+    ):
+        with Recorder(s_rec, path, include=["fp/inc/**"], exclude=["fp/*/rf"], flush_interval=0.1) as rec:
+            assert wait_for_token(s, keys("_any").alive("recorder"), 20)
+            block = zenoh.CongestionControl.BLOCK
+            pubs = {
+                k: s.declare_publisher(k, congestion_control=block)
+                for k in (keys("inc").status, keys("inc").rf, keys("oth").status)
+            }
+            for p in pubs.values():
+                assert wait_for_matching(p, 20)
+            for i in range(5):
+                put_message(pubs[keys("inc").status], s, Status(node="n", frames_processed=i))
+                pubs[keys("inc").rf].put(rf)
+                put_message(pubs[keys("oth").status], s, Status(node="n", frames_processed=i))
+            deadline = time.monotonic() + 10
+            while rec.received + rec.skipped < 15 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            for p in pubs.values():
+                p.undeclare()
+    topics = [c.topic for _, c, _ in iter_raw(path)]
+    assert topics == [keys("inc").status] * 5 and rec.skipped == 10
+    with open(path, "rb") as f:
+        assert {c.compression for c in make_reader(f).get_summary().chunk_indexes} == {"zstd"}
+    with pytest.raises(ValueError, match="--include: expected a zenoh key expression"):
+        Recorder(s_rec, path, include=["fp//bad"])
+
+
+def test_int16_rf_with_its_scale_travels_and_decodes() -> None:
+    """RFFrame 1.2: int16 RF with rf_scale (a scanner's ADC) decodes to float32 RF × scale, within half a step."""
+    from services.convert import quantise_rf
+    from services.messages import RFFrame
+
+    frame = examples()["RFFrame"]
+    q = quantise_rf(frame, bits=12)
+    back = decode(encode(q))
+    assert isinstance(back, RFFrame) and back.rf.dtype.str == "<i2" and back.rf_scale == q.rf_scale
+    assert int(abs(back.rf).max()) == 2047
+    err = abs(back.to_acquisition().rf - frame.rf).max()
+    assert err <= q.rf_scale / 2 * (1 + 1e-6)
+    assert len(encode(q)) < len(encode(frame))
+    with pytest.raises(Exception, match="rf_scale"):
+        RFFrame.model_validate({**frame.model_dump(), "rf_scale": 2.0})  # float RF has no scale
+
+
+def test_demo_listens_on_the_well_known_hub_that_the_live_viewer_connects_to() -> None:
+    """`fp view --live` with no flags connects to DEFAULT_HUB; `fp demo` listens there (or on a free port, said on
+    its console, when another node holds it)."""
+    import socket
+
+    from services.bus import DEFAULT_HUB
+    from services.cli import build_parser
+    from services.cli.demo import demo_hub
+
+    from services.bus import bus_from_args
+
+    view = build_parser().parse_args(["view", "--live"])
+    assert bus_from_args(view).connect == [DEFAULT_HUB]
+    port = int(DEFAULT_HUB.rsplit(":", 1)[1])
+    with socket.socket() as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            pytest.skip(f"{DEFAULT_HUB} is held by another process on this machine")
+        s.listen()
+        other = demo_hub(None)  # the hub is taken: a free loopback port instead
+        assert other.startswith("tcp/127.0.0.1:") and other != DEFAULT_HUB
+    assert demo_hub(None) == DEFAULT_HUB
+    with pytest.raises(ValueError, match="--listen: expected a loopback endpoint"):
+        demo_hub("tcp/0.0.0.0:7447")
