@@ -120,7 +120,7 @@ def test_velocity_uses_the_motion_aware_fingerprint(tmp_path, capsys) -> None:
                     "locate",
                     str(tmp_path / "frames.uff"),
                     "--calibration",
-                    str(tmp_path / "calibration.uff"),
+                    str(tmp_path / "calibration_cylinder.uff"),
                     "--x=-4mm:2mm",
                     "--z",
                     "22mm:28mm",

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from services.cli.imaging import grid_ranges
+from services.cli.output import make_console, progress
 from services.units import UnitError, parse_band, parse_length
 
 __all__ = ["add_characterise_parser", "run_characterise"]
@@ -80,14 +81,11 @@ def add_characterise_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run_characterise(args: argparse.Namespace) -> int:
-    from rich.console import Console
-    from rich.progress import Progress
-
     from fpcore import Grid, Imager, ImagingConfig
     from fpcore.dictionary import Dictionary, mirror_family
     from fpcore.io import read_uff
 
-    console = Console()
+    console = make_console()
     alphas, lengths = _angles(args.angles), _lengths(args.lengths)
     acq = read_uff(args.data, args.dataset, frames=[args.frame])[0]
     if not acq.probe.is_linear:
@@ -98,9 +96,9 @@ def run_characterise(args: argparse.Namespace) -> int:
     pw = imager.plane_waves(acq)
     dic = Dictionary(family=mirror_family(lengths, alphas))
     console.print(f"{len(dic)} mirror fingerprints ({alphas.size} α × {lengths.size} L), grid {grid.shape}")
-    with Progress(console=console, transient=True) as progress:
-        task = progress.add_task("dictionary", total=len(dic))
-        res = dic.evaluate(imager, pw, progress=lambda k, n: progress.update(task, completed=k))
+    with progress(console) as bar:
+        task = bar.add_task("dictionary", total=len(dic))
+        res = dic.evaluate(imager, pw, progress=lambda k, n: bar.update(task, completed=k))
     alpha_map, length_map = res.state_map("alpha_rad"), res.state_map("length_m")
     mask = res.gamma_max >= args.threshold * np.percentile(res.gamma_max, 99)
     summary = {

@@ -19,6 +19,7 @@ from fpcore import Acquisition, Fingerprint, NullLevel, locate, moving_fingerpri
 from fpcore.geometry import to_xyz
 from services.cli.fingerprint_args import add_fingerprint_arguments, fingerprint_spec, warn_r0
 from services.cli.imaging import add_imaging_arguments, grid_ranges
+from services.cli.output import make_console, progress
 from services.models import build_fingerprint
 from services.pipeline import make_imager, truth_error, truth_positions
 from services.units import parse_band
@@ -81,14 +82,12 @@ def frame_selection(text: str) -> slice | list[int]:
 
 
 def run_locate(args: argparse.Namespace) -> int:
-    from rich.console import Console
-    from rich.progress import Progress
     from rich.table import Table
 
     from fpcore.io import read_uff
     from services.viewing.figures import gamma_over_confocal
 
-    console = Console()
+    console = make_console()
     sel = None
     if args.frames:
         sel = frame_selection(args.frames)
@@ -121,8 +120,8 @@ def run_locate(args: argparse.Namespace) -> int:
     for col in ("frame", "position (mm)", "γ_max", "C_γ", "C", "PFA", "δρ_L, δz_L (mm)", "error (mm)"):
         table.add_column(col, justify="right")
     level = NullLevel(imager)
-    with Progress(console=console, transient=True) as progress:
-        task = progress.add_task("γ-maps", total=len(frames))
+    with progress(console) as bar:
+        task = bar.add_task("γ-maps", total=len(frames))
         for acq in frames:
             pw = imager.plane_waves(acq)
             found = locate(
@@ -160,7 +159,7 @@ def run_locate(args: argparse.Namespace) -> int:
             if not dets:
                 table.add_row(str(acq.frame_index), f"no detection (PFA < {args.max_pfa:g})", *[""] * 6)
             results.append(row)
-            progress.advance(task)
+            bar.advance(task)
     console.print(table)
     if args.json:
         doc = {

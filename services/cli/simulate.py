@@ -1,7 +1,7 @@
 """`fp simulate SCENARIO --out DIR`: write a simulated scenario as UFF files (issues 3 and 7).
 
-DIR/frames.uff (every frame, truth in each frame's metadata), DIR/calibration.uff (the first
-target alone in water at its r0), DIR/calibration_<target>.uff for every target, DIR/truth.json.
+DIR/frames.uff (every frame, truth in each frame's metadata), DIR/calibration_<target>.uff for every
+target (the target alone in water at its r0, named after it: calibration_sphere1.uff, …), DIR/truth.json.
 """
 
 from __future__ import annotations
@@ -10,6 +10,8 @@ import argparse
 import json
 import time
 from pathlib import Path
+
+from services.cli.output import make_console, progress
 
 __all__ = ["add_simulate_parser", "run_simulate"]
 
@@ -31,13 +33,10 @@ def add_simulate_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run_simulate(args: argparse.Namespace) -> int:
-    from rich.console import Console
-    from rich.progress import Progress
-
     from fpcore.io import write_uff
     from fpcore.simulate import scenario
 
-    console = Console()
+    console = make_console()
     sc = scenario(args.scenario, quick=args.quick, seed=args.seed)
     n = sc.n_frames if args.frames is None else args.frames
     if not 1 <= n <= sc.n_frames:
@@ -50,19 +49,16 @@ def run_simulate(args: argparse.Namespace) -> int:
     )
     t = time.perf_counter()
     frames = []
-    with Progress(console=console, transient=True) as progress:
-        task = progress.add_task("frames", total=n)
+    with progress(console) as bar:
+        task = bar.add_task("frames", total=n)
         for k, acq in enumerate(sc.frames()):
             if k >= n:
                 break
             frames.append(acq)
-            progress.advance(task)
+            bar.advance(task)
     write_uff(out / "frames.uff", frames)
-    for i, name in enumerate(sc.target_names):
-        cal = sc.calibration(name)
-        write_uff(out / f"calibration_{name}.uff", cal)
-        if i == 0:
-            write_uff(out / "calibration.uff", cal)
+    for name in sc.target_names:
+        write_uff(out / f"calibration_{name}.uff", sc.calibration(name))
     truth = {
         "scenario": args.scenario,
         "quick": args.quick,

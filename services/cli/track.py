@@ -20,6 +20,7 @@ import numpy as np
 
 from services.cli.fingerprint_args import add_fingerprint_arguments, fingerprint_spec, warn_r0
 from services.cli.imaging import add_imaging_arguments, grid_ranges
+from services.cli.output import make_console, progress
 from services.pipeline import Pipeline, PipelineConfig, truth_error, truth_positions
 from services.units import parse_band
 
@@ -57,13 +58,11 @@ def _track_row(t: Any, truths: list[tuple[str | None, np.ndarray]]) -> dict[str,
 
 
 def run_track(args: argparse.Namespace) -> int:
-    from rich.console import Console
-    from rich.progress import Progress
     from rich.table import Table
 
     from fpcore.io import read_uff
 
-    console = Console()
+    console = make_console()
     frames = read_uff(args.data, args.dataset)
     first = frames[0]
     band = parse_band(args.band) if args.band else first.default_band()
@@ -100,8 +99,8 @@ def run_track(args: argparse.Namespace) -> int:
     rows: list[dict[str, Any]] = []
     history: list[dict[str, Any]] = []
     conf_sum = None
-    with Progress(console=console, transient=True) as progress:
-        task = progress.add_task("tracking", total=len(frames))
+    with progress(console) as bar:
+        task = bar.add_task("tracking", total=len(frames))
         for acq in frames:
             res = pipe.process(acq)
             truths = truth_positions(acq.ground_truth)
@@ -148,7 +147,7 @@ def run_track(args: argparse.Namespace) -> int:
                     f"{t['pfa']:.1e}",
                     "" if err is None else f"{err * 1e3:.2f}",
                 )
-            progress.advance(task)
+            bar.advance(task)
     console.print(table)
     if args.json:
         doc = {
