@@ -224,11 +224,9 @@ def test_demo_listens_on_the_well_known_hub_that_the_live_viewer_connects_to() -
     its console, when another node holds it)."""
     import socket
 
-    from services.bus import DEFAULT_HUB
+    from services.bus import DEFAULT_HUB, bus_from_args
     from services.cli import build_parser
     from services.cli.demo import demo_hub
-
-    from services.bus import bus_from_args
 
     view = build_parser().parse_args(["view", "--live"])
     assert bus_from_args(view).connect == [DEFAULT_HUB]

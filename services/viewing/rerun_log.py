@@ -135,9 +135,8 @@ class RerunLog:
         if self.probe is None or self.probe.shape != pos.shape or not np.array_equal(self.probe, pos):
             self.probe, self.pitch = pos, float(msg.probe.pitch)
             half = [0.45 * self.pitch, 0.45 * self.pitch, 0.1e-3]
-            self._log(
-                "world/probe", rr.Boxes3D(centers=pos, half_sizes=[half] * len(pos), colors=[150, 150, 180]), static=True
-            )
+            boxes = rr.Boxes3D(centers=pos, half_sizes=[half] * len(pos), colors=[150, 150, 180])
+            self._log("world/probe", boxes, static=True)
         targets = truth_targets(msg)
         self.truth[msg.frame_index] = targets
         for k in [k for k in self.truth if k < msg.frame_index - 16]:
