@@ -20,11 +20,12 @@ Units are SI throughout: metres, seconds, hertz, m/s.
 
 from __future__ import annotations
 
+import math
 import time
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, JsonValue, model_validator
+from pydantic import BaseModel, ConfigDict, Field, JsonValue, ModelWrapValidatorHandler, PrivateAttr, model_validator
 
 from services.arrays import ArrayFieldError, array_field
 
@@ -123,6 +124,18 @@ class Grid(_Model):
         from fpcore.grid import Grid as CoreGrid
 
         return CoreGrid(self.x, self.z, self.y)
+
+
+def nonfinite_path(value: Any, path: str) -> str | None:
+    """'truth.targets[0].position_m[2]: expected a finite number, got inf' for the first NaN/inf in a JSON
+    value (None when every number is finite)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return f"{path}: expected a finite number, got {value}"
+    if isinstance(value, dict):
+        return next((p for k, v in value.items() if (p := nonfinite_path(v, f"{path}.{k}"))), None)
+    if isinstance(value, (list, tuple)):
+        return next((p for i, v in enumerate(value) if (p := nonfinite_path(v, f"{path}[{i}]"))), None)
+    return None
 
 
 def _check_on_grid(field: str, arr: np.ndarray, grid: Grid) -> None:
@@ -245,6 +258,28 @@ class RFFrame(Message):
         "Only with int16 RF. Since 1.2.",
     )
 
+    _truth_problem: str | None = PrivateAttr(default=None)
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _drop_broken_truth(cls, data: Any, handler: ModelWrapValidatorHandler[RFFrame]) -> RFFrame:
+        """A truth with NaN or infinite numbers (e.g. 1e400) is dropped, not the frame: its RF is still good.
+        What was wrong is kept in :attr:`truth_problem` for the receiver to report."""
+        problem = None
+        if isinstance(data, dict) and data.get("truth") is not None:
+            problem = nonfinite_path(data["truth"], "truth")
+            if problem is not None:
+                data = {**data, "truth": None}
+        frame = handler(data)
+        if problem is not None:
+            frame._truth_problem = problem
+        return frame
+
+    @property
+    def truth_problem(self) -> str | None:
+        """Why the sender's truth was dropped (None: kept, or there was none)."""
+        return self._truth_problem
+
     @model_validator(mode="after")
     def _check(self) -> RFFrame:
         expected = (self.probe.n_elements, int(self.sines.shape[0]))
@@ -307,7 +342,7 @@ class GammaMap(Message):
     fingerprint: str
     state: dict[str, float] = Field(default_factory=dict, description="Dictionary state q.")
     grid: Grid
-    gamma: Annotated[np.ndarray, array_field("<f4")] = Field(description="γ on the grid, float32.")
+    gamma: Annotated[np.ndarray, array_field("<f4", finite=True)] = Field(description="γ on the grid, float32.")
     normalisation: Normalisation = Field(default_factory=Normalisation)
 
     @model_validator(mode="after")
@@ -323,7 +358,7 @@ class ConfocalImage(Message):
     frame_index: int = Field(ge=0)
     timestamp: float = Field(description="Acquisition time of the input frame, s.")
     grid: Grid
-    image: Annotated[np.ndarray, array_field("<f4")] = Field(description="Image on the grid, float32.")
+    image: Annotated[np.ndarray, array_field("<f4", finite=True)] = Field(description="Image on the grid, float32.")
     scale: Literal["linear", "db"] = "linear"
 
     @model_validator(mode="after")

@@ -25,31 +25,50 @@ __all__ = [
     "calibration_position",
     "check_calibration",
     "check_r0",
+    "parse_model",
     "recorded_position",
 ]
 
 
+def parse_model(spec: str) -> tuple[str, dict[str, float]]:
+    """(kind, parameters in SI) of a model spec ``point`` or ``mirror:L=2mm,alpha=10`` (L > 0 a length,
+    alpha a finite angle in degrees, returned in radians); ValueError naming the part at fault."""
+    kind, _, rest = str(spec).strip().partition(":")
+    if kind == "point":
+        if rest.strip():
+            raise ValueError(f"--model: 'point' takes no parameters, got {spec!r}")
+        return kind, {}
+    if kind != "mirror":
+        raise ValueError(f"--model: unknown model {kind!r} (expected 'point' or 'mirror:L=…,alpha=…')")
+    params: dict[str, str] = {}
+    for kv in (p.strip() for p in rest.split(",") if p.strip()):
+        key, eq, value = kv.partition("=")
+        if not eq or key.strip() not in ("L", "alpha") or key.strip() in params:
+            raise ValueError(f"--model: expected mirror:L=<length>[,alpha=<degrees>], got {kv!r} in {spec!r}")
+        params[key.strip()] = value.strip()
+    if "L" not in params:
+        raise ValueError(f"--model: mirror needs L, e.g. mirror:L=2mm,alpha=10, got {spec!r}")
+    length = parse_length(params["L"], "--model L")
+    if not length > 0:
+        raise ValueError(f"--model L: expected a length > 0, got {params['L']!r}")
+    try:
+        alpha = float(params.get("alpha", "0"))
+    except ValueError:
+        raise ValueError(f"--model alpha: expected an angle in degrees, got {params['alpha']!r}") from None
+    if not np.isfinite(alpha):
+        raise ValueError(f"--model alpha: expected a finite angle in degrees, got {params['alpha']!r}")
+    return kind, {"L": length, "alpha": float(np.deg2rad(alpha))}
+
+
 def build_model(spec: str, pw: PlaneWaveData, r0: np.ndarray = (0.0, 0.0, 0.0), name: str | None = None) -> Fingerprint:
     """Numerical fingerprint from a spec: ``point`` or ``mirror:L=2mm,alpha=10`` (alpha in degrees)."""
-    kind, _, rest = spec.partition(":")
+    kind, params = parse_model(spec)
     r0 = np.asarray(r0, dtype=float)
     if kind == "point":
         return point_fingerprint(pw.freqs, pw.out_sines, pw.in_sines, pw.c0, r0, name=name or "point")
-    if kind == "mirror":
-        params = dict(kv.split("=", 1) for kv in rest.split(",") if "=" in kv)
-        if "L" not in params:
-            raise ValueError("model: mirror needs L, e.g. mirror:L=2mm,alpha=10")
-        return mirror_fingerprint(
-            pw.freqs,
-            pw.out_sines,
-            pw.in_sines,
-            pw.c0,
-            parse_length(params["L"], "model L"),
-            np.deg2rad(float(params.get("alpha", 0.0))),
-            r0=r0,
-            name=name or "mirror",
-        )
-    raise ValueError(f"model: unknown model {kind!r} (expected 'point' or 'mirror:L=…,alpha=…')")
+    return mirror_fingerprint(
+        pw.freqs, pw.out_sines, pw.in_sines, pw.c0, params["L"], params["alpha"], r0=r0, name=name or "mirror"
+    )
 
 
 def check_calibration(cal: Acquisition, data: Acquisition) -> None:

@@ -73,6 +73,7 @@ import h5py
 import numpy as np
 import scipy.fft as sfft
 
+from fpcore import budget
 from fpcore.acquisition import Acquisition, PlaneWaveSequence, Probe
 from fpcore.geometry import cosines
 from fpcore.io.iq import iq_to_rf, rf_upsampling
@@ -443,7 +444,10 @@ def _scalar(group: h5py.Group, key: str, field: str, what: str, default: float |
     arr = _array(group, key, field, what)
     if arr.size != 1:
         raise UFFError(f"{field}: expected a scalar ({what}), got shape {arr.shape}")
-    return float(arr.ravel()[0])
+    value = float(arr.ravel()[0])
+    if math.isnan(value):
+        raise UFFError(f"{field}: expected a number ({what}), got NaN")
+    return value
 
 
 def _items(node: h5py.Group, cls: str) -> list[h5py.Group]:
@@ -636,14 +640,12 @@ def read_uff(
     """
     if not Path(path).is_file():
         raise UFFError(f"{path}: expected an existing UFF (HDF5) file, found none")
-    from fpcore.io.formats import detect_format  # not HDF5, .mat, PICMUS: read it or say what it is
-
-    if dataset is None and detect_format(path) == "picmus":
+    if dataset is None and _detect(path) == "picmus":
         from fpcore.io.picmus import read_picmus
 
         acqs = read_picmus(path)
         return acqs if frames is None else (acqs[frames] if isinstance(frames, slice) else [acqs[i] for i in frames])
-    with h5py.File(path, "r") as f:
+    with _open_hdf5(path) as f:
         name = _choose_dataset(f, dataset)
         cd = f[name]
         fs = _scalar(cd, "sampling_frequency", f"{name}/sampling_frequency", "Hz")
@@ -658,7 +660,10 @@ def read_uff(
         fs = fs * rf_upsampling(fs, fmod)  # IQ becomes RF at this rate (fpcore/io/iq.py)
         if not (c0 > 0 and math.isfinite(c0)):
             raise UFFError(f"{name}/sound_speed: expected a positive speed in m/s, got {c0}")
+        if not math.isfinite(t_init):
+            raise UFFError(f"{name}/initial_time: expected a finite time in s, got {t_init}")
         positions, pitch = _read_probe(cd, f"{name}/probe")
+        _check_positions(positions, f"{name}/probe/geometry")
         sines, delays = _read_sequence(cd, f"{name}/sequence", c0)
         n_u, n_w = positions.shape[0], sines.shape[0]
 
@@ -686,12 +691,17 @@ def read_uff(
                 idx = idx[frames] if isinstance(frames, slice) else [idx[int(i)] for i in frames]
             except IndexError as exc:
                 raise UFFError(f"frames: expected indices below {n_frames}, got {frames}") from exc
+        _check_declared(f"{name}/data", shape, n_frames, len(idx), np.dtype(dnode.dtype).itemsize, frames)
 
         meta = _load_json_attr(cd, META_ATTR, name)
         truths = _load_json_attr(cd, TRUTH_ATTR, name)
-        meta = meta if isinstance(meta, dict) else {}
+        if meta is not None and not isinstance(meta, dict):
+            raise UFFError(f"{name}.attrs[{META_ATTR!r}]: expected a JSON object, got {type(meta).__name__}")
+        meta = meta or {}
         if not isinstance(truths, list) or len(truths) != n_frames:
             truths = [{} for _ in range(n_frames)]
+        _check_meta(meta, n_frames, f"{name}.attrs[{META_ATTR!r}]")
+        _check_truths(truths, f"{name}.attrs[{TRUTH_ATTR!r}]")
 
         def per_frame(key: str) -> list[Any] | None:
             v = meta.get(key)
@@ -705,7 +715,14 @@ def read_uff(
         if msines is not None and np.shape(msines) == sines.shape and np.allclose(msines, sines, rtol=0, atol=1e-9):
             sines = np.asarray(msines, dtype=np.float64)  # exact values of our own writer
 
+        if not np.all(np.isfinite(delays)):
+            raise UFFError(f"{name}/sequence: expected finite wave delays in s, got {delays.tolist()}")
         shifts = (delays - delays.min()) * fs
+        budget.check(
+            f"{name}/sequence delays (spread {float(np.ptp(delays)):g} s = {float(shifts.max()):.3g} samples)",
+            budget.array_bytes((len(idx), n_u, n_w, full[3] + float(shifts.max())), 4),
+            "expected per-wave delays within the record",
+        )
         t0 = t_init + float(delays.min())
         rfs = []
         for i in idx:
@@ -717,6 +734,10 @@ def read_uff(
                 rf = rf.astype(np.float32)
             if not np.all(np.isfinite(rf)):
                 raise UFFError(f"{name}/data: expected finite RF samples, found NaN or Inf in frame {i}")
+            try:
+                budget.check_rf_amplitude(rf, f"{name}/data (frame {i})")
+            except ValueError as exc:
+                raise UFFError(str(exc)) from None
             if fmod > 0:
                 rf, _ = iq_to_rf(rf, fs_iq, t_init, fmod)
             if np.any(shifts > 1e-6):
@@ -767,6 +788,97 @@ def read_uff(
         )
         for i, rf in rfs
     ]
+
+
+def _detect(path: PathLike) -> str:
+    """``fpcore.io.formats.detect_format`` (not HDF5, .mat, PICMUS: read it or say what it is); an HDF5 file
+    that cannot be opened (truncated, corrupt) is a UFFError naming the file."""
+    from fpcore.io.formats import detect_format
+
+    try:
+        return detect_format(path)
+    except OSError as exc:
+        raise UFFError(f"{path}: expected a UFF (HDF5) file, could not read it ({exc})") from None
+
+
+def _open_hdf5(path: PathLike) -> h5py.File:
+    try:
+        return h5py.File(path, "r")
+    except OSError as exc:  # not HDF5, truncated, corrupt
+        raise UFFError(f"{path}: expected a UFF (HDF5) file, could not read it ({exc})") from None
+
+
+def _check_positions(positions: np.ndarray, field: str) -> None:
+    if positions.shape[0] < 1 or not np.all(np.isfinite(positions)):
+        raise UFFError(f"{field}: expected finite element positions in m, found NaN or Inf")
+    if positions.shape[0] > 1 and np.unique(np.round(positions, 12), axis=0).shape[0] < positions.shape[0]:
+        raise UFFError(f"{field}: expected {positions.shape[0]} elements at distinct positions, found duplicates")
+
+
+def _check_declared(field: str, shape: tuple[int, ...], n_frames: int, n_read: int, itemsize: int, frames: Any) -> None:
+    """The declared data shape: frames and samples present, and the frames to read within the memory budget
+    (a sparse file may declare terabytes it does not hold; fpcore.budget)."""
+    if n_frames < 1:
+        raise UFFError(f"{field}: expected at least one frame, the file declares shape {shape} (0 frames)")
+    if shape[-1] < 2:
+        raise UFFError(f"{field}: expected at least 2 time samples per trace, the file declares shape {shape}")
+    if n_read < 1:
+        raise UFFError(f"frames: the selection {frames} holds none of the file's {n_frames} frame(s)")
+    per_frame = budget.array_bytes(shape[-3:] if len(shape) >= 3 else shape, max(itemsize, 4))
+    # the samples as read, the float32 copy and its transposition
+    budget.check(
+        f"{field}: {n_read} frame(s) of declared shape {tuple(shape[-3:])}",
+        3 * n_read * per_frame,
+        "read fewer frames (--frames) or check the file's declared shape",
+    )
+
+
+def _finite_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _check_meta(meta: dict[str, Any], n_frames: int, field: str) -> None:
+    """fp_metadata written by this module: numbers where numbers belong."""
+    probe = meta.get("probe")
+    if probe is not None:
+        if not isinstance(probe, dict):
+            raise UFFError(f"{field}.probe: expected a JSON object, got {type(probe).__name__}")
+        for k in ("pitch", "centre_frequency", "bandwidth"):
+            v = probe.get(k)
+            if v is not None and not (_finite_number(v) and v > 0):
+                raise UFFError(f"{field}.probe.{k}: expected a positive number, got {v!r:.80}")
+    for k in ("timestamp", "frame_index"):
+        v = meta.get(k)
+        if not isinstance(v, list):
+            continue
+        for i, x in enumerate(v):
+            ok = _finite_number(x) if k == "timestamp" else (isinstance(x, int) and not isinstance(x, bool) and x >= 0)
+            if not ok:
+                what = "a finite number in s" if k == "timestamp" else "an integer >= 0"
+                raise UFFError(f"{field}.{k}[{i}]: expected {what}, got {x!r:.80}")
+    s = meta.get("sines")
+    if s is not None:
+        arr = np.asarray(s, dtype=object)
+        if not all(_finite_number(x) for x in arr.ravel()):
+            raise UFFError(f"{field}.sines: expected finite numbers, got {str(s)[:80]}")
+
+
+def _check_truths(truths: list[Any], field: str) -> None:
+    """Each frame's truth: a JSON object without NaN or infinite numbers (e.g. 1e400)."""
+
+    def bad(v: Any, path: str) -> str | None:
+        if isinstance(v, float) and not math.isfinite(v):
+            return f"{path}: expected a finite number, got {v}"
+        if isinstance(v, dict):
+            return next((b for k, x in v.items() if (b := bad(x, f"{path}.{k}"))), None)
+        if isinstance(v, list):
+            return next((b for i, x in enumerate(v) if (b := bad(x, f"{path}[{i}]"))), None)
+        return None
+
+    for i, t in enumerate(truths):
+        problem = bad(t, f"{field}[{i}]")
+        if problem:
+            raise UFFError(problem)
 
 
 def _load_json_attr(group: h5py.Group, key: str, name: str) -> Any:

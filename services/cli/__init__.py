@@ -12,8 +12,11 @@ from __future__ import annotations
 import argparse
 import sys
 import traceback
+import warnings
+from typing import NoReturn
 
 import fpcore
+from fpcore import budget
 from services.cli.characterise import add_characterise_parser
 from services.cli.convert import add_convert_parser
 from services.cli.demo import add_demo_parser
@@ -29,10 +32,23 @@ from services.cli.view import add_view_parser
 __all__ = ["build_parser", "main"]
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with its usage errors on one line (`fp locate: error: argument --n-freq: …`), exit 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see `{self.prog} --help`)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="fp", description="Fingerprint localisation of targets in scattering media.")
+    ap = OneLineParser(prog="fp", description="Fingerprint localisation of targets in scattering media.")
     ap.add_argument("--version", action="version", version=f"fp {fpcore.__version__}")
     ap.add_argument("--debug", action="store_true", help="on an unexpected error, print the Python traceback too")
+    ap.add_argument(
+        "--memory-budget",
+        metavar="SIZE",
+        help="refuse requests estimated above this size, e.g. 8GiB or 25%% of the RAM (default: "
+        f"${budget.ENV_VAR}, else {budget.DEFAULT_FRACTION * 100:.0f}%% of the RAM; fpcore.budget)",
+    )
     sub = ap.add_subparsers(dest="command", required=True)
     add_demo_parser(sub)
     add_locate_parser(sub)
@@ -75,15 +91,26 @@ def join_negative_values(argv: list[str]) -> list[str]:
     return out
 
 
+def _one_line(text: object) -> str:
+    """An error message on one line (a library's multi-line message keeps its first line)."""
+    lines = [line.strip() for line in str(text).splitlines() if line.strip()]
+    return lines[0] if lines else type(text).__name__
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(join_negative_values(list(sys.argv[1:] if argv is None else argv)))
     try:
-        return int(args.func(args))
+        budget.set_memory_budget(
+            budget.parse_bytes(args.memory_budget, "--memory-budget") if args.memory_budget else None
+        )
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # numpy overflow chatter: results are checked instead
+            return int(args.func(args))
     except (ValueError, OSError) as exc:
-        print(f"fp {args.command}: error: {exc}", file=sys.stderr)
+        print(f"fp {args.command}: error: {_one_line(exc)}", file=sys.stderr)
         return 2
     except KeyError as exc:  # a name that is not in a table (scenario, fingerprint, key): the message says which
-        print(f"fp {args.command}: error: {exc.args[0] if exc.args else exc}", file=sys.stderr)
+        print(f"fp {args.command}: error: {_one_line(exc.args[0] if exc.args else exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"fp {args.command}: interrupted", file=sys.stderr)
@@ -96,10 +123,13 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 2
     except Exception as exc:  # last resort: one line, never a traceback unless asked for (--debug)
+        if type(exc).__name__ == "ZError":  # zenoh: a bad endpoint or configuration
+            print(f"fp {args.command}: error: bus (zenoh): {_one_line(exc)}", file=sys.stderr)
+            return 2
         if args.debug:
             traceback.print_exc()
         print(
-            f"fp {args.command}: error: {type(exc).__name__}: {exc} (unexpected; run `fp --debug "
+            f"fp {args.command}: error: {type(exc).__name__}: {_one_line(exc)} (unexpected; run `fp --debug "
             f"{args.command} …` for the traceback)",
             file=sys.stderr,
         )

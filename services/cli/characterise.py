@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.cli.imaging import grid_ranges
+from services.cli.imaging import grid_ranges, int_at_least
 from services.cli.output import make_console, progress
 from services.units import UnitError, parse_band, parse_length
 
@@ -29,8 +29,8 @@ def _angles(text: str) -> np.ndarray:
         raise UnitError(
             f"--angles: expected start:stop:step in degrees, e.g. --angles=-40:40:5, got {text!r}"
         ) from None
-    if step <= 0 or b < a:
-        raise UnitError(f"--angles: expected start <= stop and step > 0, got {text!r}")
+    if not (step > 0 and a <= b and (b - a) / step <= 10_000):
+        raise UnitError(f"--angles: expected start <= stop, step > 0 and at most 10000 angles, got {text!r}")
     return np.deg2rad(np.arange(a, b + 1e-9, step))
 
 
@@ -39,9 +39,12 @@ def _lengths(text: str) -> np.ndarray:
     if len(parts) != 3:
         raise UnitError(f"--lengths: expected start:stop:count, e.g. 1mm:4mm:8, got {text!r}")
     lo, hi = parse_length(parts[0], "--lengths"), parse_length(parts[1], "--lengths")
-    n = int(parts[2])
-    if not (0 < lo <= hi and n >= 1):
-        raise UnitError(f"--lengths: expected 0 < start <= stop and count >= 1, got {text!r}")
+    try:
+        n = int(parts[2])
+    except ValueError:
+        raise UnitError(f"--lengths: expected an integer count, e.g. 1mm:4mm:8, got {text!r}") from None
+    if not (0 < lo <= hi and 1 <= n <= 10_000):
+        raise UnitError(f"--lengths: expected 0 < start <= stop and 1 <= count <= 10000, got {text!r}")
     return np.linspace(lo, hi, n)
 
 
@@ -60,10 +63,12 @@ def add_characterise_parser(sub: argparse._SubParsersAction) -> None:
         help="orientations start:stop:step in degrees (default -45:45:3; write --angles=-40:40:5)",
     )
     p.add_argument("--lengths", default="0.5mm:4mm:8", help="lengths start:stop:count (default 0.5mm:4mm:8)")
-    p.add_argument("--frame", type=int, default=0, help="frame index in the file (default 0)")
+    p.add_argument("--frame", type=int_at_least(0), default=0, help="frame index in the file (default 0)")
     p.add_argument("--dataset", help="dataset name inside the UFF file when there are several")
     p.add_argument("--band", help="band f_min:f_max, e.g. 5.5MHz:9.5MHz (default: the probe's band)")
-    p.add_argument("--n-freq", type=int, default=None, help="frequencies kept (default: all bins, 2× padded)")
+    p.add_argument(
+        "--n-freq", type=int_at_least(1), default=None, help="frequencies kept (default: all bins, 2× padded)"
+    )
     p.add_argument("--x", dest="x_range", help="lateral range, e.g. --x=-8mm:8mm")
     p.add_argument("--y", dest="y_range", help=argparse.SUPPRESS)
     p.add_argument("--z", dest="z_range", help="depth range, e.g. 5mm:25mm")
@@ -84,6 +89,7 @@ def run_characterise(args: argparse.Namespace) -> int:
     from fpcore import Grid, Imager, ImagingConfig
     from fpcore.dictionary import Dictionary, mirror_family
     from fpcore.io import read_uff
+    from services.pipeline import check_grid_axes, check_imaging_budget
 
     console = make_console()
     alphas, lengths = _angles(args.angles), _lengths(args.lengths)
@@ -91,7 +97,10 @@ def run_characterise(args: argparse.Namespace) -> int:
     if not acq.probe.is_linear:
         raise ValueError("probe: fp characterise maps 2D (x–z) images; a linear array is expected")
     band = parse_band(args.band) if args.band else acq.default_band()
-    grid = Grid.for_acquisition(acq, band, **grid_ranges(args))
+    ranges = grid_ranges(args)
+    check_grid_axes(acq, band, ranges)
+    grid = Grid.for_acquisition(acq, band, **ranges)
+    check_imaging_budget(acq, band, grid, args.n_freq, None, n_fingerprints=alphas.size * lengths.size)
     imager = Imager(ImagingConfig(grid, band, args.n_freq))
     pw = imager.plane_waves(acq)
     dic = Dictionary(family=mirror_family(lengths, alphas))

@@ -12,7 +12,8 @@ from fpcore import Acquisition, Grid
 from fpcore.geometry import to_xyz
 from fpcore.locate import resolution_of
 from fpcore.metrics import DEFAULT_MAX_PFA
-from services.models import check_calibration, check_r0, recorded_position
+from services.cli.imaging import number_in
+from services.models import check_calibration, check_r0, parse_model, recorded_position
 from services.registry import FingerprintSpec
 from services.units import parse_length, parse_position
 
@@ -47,7 +48,7 @@ def add_fingerprint_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--max-pfa",
-        type=float,
+        type=number_in(0, 1),
         default=DEFAULT_MAX_PFA,
         help=f"report a detection only below this calibrated false-alarm probability (default {DEFAULT_MAX_PFA:g})",
     )
@@ -74,8 +75,8 @@ def calibration_r0(args: argparse.Namespace, cal: Acquisition) -> tuple[np.ndarr
         raise ValueError("--r0: the calibration file has no target position in its truth; give --r0 X,Z[,Y]")
     if args.diameter:
         d = parse_length(args.diameter, "--diameter")
-        if not d >= 0:
-            raise ValueError(f"--diameter: expected a length >= 0, got {args.diameter!r}")
+        if not d > 0:
+            raise ValueError(f"--diameter: expected a length > 0, got {args.diameter!r}")
         return r0, d
     return r0, d_rec
 
@@ -90,6 +91,7 @@ def fingerprint_spec(
     if not 0 < args.max_pfa <= 1:
         raise ValueError(f"--max-pfa: expected 0 < p <= 1, got {args.max_pfa}")
     if not args.calibration:
+        parse_model(args.model)  # a bad spec fails here, before any imaging
         return FingerprintSpec(args.model.partition(":")[0], model=args.model, r0=model_r0), None
     cal = read_uff(args.calibration, args.dataset)[0]
     check_calibration(cal, first)

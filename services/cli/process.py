@@ -15,8 +15,9 @@ import logging
 from fpcore.geometry import to_xyz
 from fpcore.metrics import DEFAULT_MAX_PFA
 from services.bus import add_bus_arguments, bus_from_args, open_session, stop_on_signals, tune_malloc, wait_until
-from services.cli.imaging import add_imaging_arguments, grid_ranges
+from services.cli.imaging import add_imaging_arguments, grid_ranges, int_at_least, number_in
 from services.nodes.processor import Processor, ProcessorConfig
+from services.models import parse_model
 from services.registry import FingerprintSpec
 from services.units import parse_band, parse_length, parse_position
 from services.wire import DEFAULT_MAX_BYTES
@@ -61,7 +62,7 @@ def add_process_parser(sub: argparse._SubParsersAction) -> None:
     add_imaging_arguments(img, peaks_help="peaks reported per fingerprint")
     img.add_argument(
         "--max-pfa",
-        type=float,
+        type=number_in(0, 1),
         default=DEFAULT_MAX_PFA,
         help=f"publish a detection only below this calibrated false-alarm probability (default {DEFAULT_MAX_PFA:g})",
     )
@@ -74,7 +75,7 @@ def add_process_parser(sub: argparse._SubParsersAction) -> None:
     img.add_argument("--no-track", action="store_true", help="do not run the tracker")
     img.add_argument(
         "--track-integrate",
-        type=int,
+        type=int_at_least(1),
         default=1,
         metavar="K",
         help="tracker: search the mean of the last K γ-maps (fog decorrelates, a slow target "
@@ -87,15 +88,21 @@ def add_process_parser(sub: argparse._SubParsersAction) -> None:
         default="newest",
         help="newest: live, keep the newest frame, count drops; fifo: replay, block, drop nothing",
     )
-    node.add_argument("--fifo-depth", type=int, default=8, help="FIFO depth in fifo mode (default 8)")
+    node.add_argument("--fifo-depth", type=int_at_least(1), default=8, help="FIFO depth in fifo mode (default 8)")
     node.add_argument(
         "--max-frame-bytes",
-        type=int,
+        type=int_at_least(1),
         default=DEFAULT_MAX_BYTES,
         help=f"refuse larger frames (default {DEFAULT_MAX_BYTES})",
     )
-    node.add_argument("--status-period", type=float, default=1.0, help="seconds between Status messages")
-    node.add_argument("--duration", type=float, help="stop after this many seconds (default: run until signalled)")
+    node.add_argument(
+        "--status-period", type=number_in(0), default=1.0, help="seconds between Status messages (default 1)"
+    )
+    node.add_argument(
+        "--duration",
+        type=number_in(0, lo_open=False),
+        help="stop after this many seconds (default: run until signalled)",
+    )
     add_bus_arguments(p, listen="tcp/127.0.0.1:7447", connect=None)
     p.set_defaults(func=run_process)
 
@@ -117,6 +124,8 @@ def specs_from_args(args: argparse.Namespace) -> list[FingerprintSpec]:
     specs = []
     r0 = _xyz(args.r0, "--r0") if args.r0 else None
     diameter = parse_length(args.diameter, "--diameter") if args.diameter else None
+    if diameter is not None and not diameter > 0:
+        raise ValueError(f"--diameter: expected a length > 0, got {args.diameter!r}")
     for path in args.calibration:
         cal = read_uff(path, args.dataset)[0]
         name = calibration_name(path, cal)
@@ -124,6 +133,7 @@ def specs_from_args(args: argparse.Namespace) -> list[FingerprintSpec]:
             name = Path(path).stem
         specs.append(FingerprintSpec(name, calibration=cal, r0=r0, diameter=diameter))
     for i, spec in enumerate(args.model):
+        parse_model(spec)  # a bad spec fails here, before the node starts
         name = spec.partition(":")[0] + (f"{i}" if len(args.model) > 1 else "")
         specs.append(FingerprintSpec(name, model=spec, r0=r0))
     if args.scenario:

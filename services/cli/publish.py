@@ -20,6 +20,7 @@ from services.bus import (
     stop_on_signals,
     tune_malloc,
 )
+from services.cli.imaging import int_at_least, number_in
 from services.nodes.publisher import PACES, Publisher
 from services.sources import IngestSource, MCAPSource, SimulatorSource, Source, UFFSource
 from services.topics import keys
@@ -45,26 +46,34 @@ def add_publish_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="scenario seed (default 0)")
     p.add_argument("--dataset", help="dataset name inside the UFF file")
     p.add_argument("--from-rig", help="MCAP replay: the recorded rig to replay (default: any)")
-    p.add_argument("--frames", type=int, help="publish at most this many frames")
-    p.add_argument("--repeat", type=int, default=1, help="replay a finite source this many times (default 1)")
+    p.add_argument("--frames", type=int_at_least(1), help="publish at most this many frames")
+    p.add_argument(
+        "--repeat", type=int_at_least(1), default=1, help="replay a finite source this many times (default 1)"
+    )
     pace = p.add_argument_group("pacing")
     pace.add_argument(
         "--pace",
         choices=PACES,
         help="original timing (default), fixed rate, ack (as fast as the processor takes) or none",
     )
-    pace.add_argument("--rate", type=float, help="frames per second (implies --pace rate)")
+    pace.add_argument("--rate", type=number_in(0), help="frames per second (implies --pace rate)")
     pace.add_argument("--fast", action="store_true", help="as fast as the consumer takes (same as --pace ack)")
-    pace.add_argument("--speed", type=float, default=1.0, help="original timing × speed (default 1)")
-    pace.add_argument("--window", type=int, default=2, help="frames in flight with --pace ack (default 2)")
+    pace.add_argument("--speed", type=number_in(0), default=1.0, help="original timing × speed (default 1)")
+    pace.add_argument("--window", type=int_at_least(1), default=2, help="frames in flight with --pace ack (default 2)")
     pace.add_argument(
         "--wait-for",
         default="processor",
         help="nodes to wait for before publishing: processor, recorder, both comma-separated, or none",
     )
-    pace.add_argument("--wait-timeout", type=float, default=10.0, help="seconds to wait for them (default 10)")
-    pace.add_argument("--ack-timeout", type=float, default=30.0, help="give up on a frame's ack after (default 30)")
-    p.add_argument("--max-frame-bytes", type=int, default=DEFAULT_MAX_BYTES, help="ingest: refuse larger frames")
+    pace.add_argument(
+        "--wait-timeout", type=number_in(0, lo_open=False), default=10.0, help="seconds to wait for them (default 10)"
+    )
+    pace.add_argument(
+        "--ack-timeout", type=number_in(0), default=30.0, help="give up on a frame's ack after (default 30)"
+    )
+    p.add_argument(
+        "--max-frame-bytes", type=int_at_least(1), default=DEFAULT_MAX_BYTES, help="ingest: refuse larger frames"
+    )
     add_bus_arguments(p, listen=EPHEMERAL, connect=DEFAULT_HUB)
     p.set_defaults(func=run_publish)
 

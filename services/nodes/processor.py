@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from fpcore.budget import BudgetError
 from services.bus import FifoSlot, LatestSlot, sample_publish_time
 from services.convert import frame_messages
 from services.messages import ErrorReport, Latency, RFFrame, Status
@@ -247,6 +248,16 @@ class Processor(Node):
             self.rejected += 1
             self.report(ErrorReport(key=key, field="payload", problem=f"{type(exc).__name__}: {exc}", node=self.name))
             return
+        if isinstance(msg, RFFrame) and msg.truth_problem:  # the RF is good: processed without its truth
+            self.report(
+                ErrorReport(
+                    frame_index=msg.frame_index,
+                    key=key,
+                    field="truth",
+                    problem=f"{msg.truth_problem}; the truth was dropped and the frame processed without it"[:2000],
+                    node=self.name,
+                )
+            )
         self._slot.put(_Job(msg, key, t_pub, t_dec), self._stop)
 
     # -- processing ------------------------------------------------------------------------------------
@@ -260,7 +271,14 @@ class Processor(Node):
                 self._process(job)
             except Exception as exc:  # the node never dies on one frame
                 self.failed += 1
-                field_ = "geometry" if isinstance(exc, ValueError) else "processing"
+                # BudgetError: the frame's geometry would need more memory than the budget (fpcore.budget)
+                field_ = (
+                    "budget"
+                    if isinstance(exc, BudgetError)
+                    else "geometry"
+                    if isinstance(exc, ValueError)
+                    else "processing"
+                )
                 log.exception("frame %s failed", job.msg.frame_index)
                 self.report(
                     ErrorReport(
