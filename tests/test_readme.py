@@ -196,3 +196,26 @@ def test_readme_command_lines_run(tmp_path, monkeypatch, capsys) -> None:
     assert (work / "fibres" / "frames.uff").is_file() and (work / "fibres.png").stat().st_size > 10_000
     assert (work / "rec.mcap").stat().st_size > 100_000 and (work / "fixed.mcap").is_file()
     shutil.rmtree(work / "sim", ignore_errors=True)
+
+
+def test_output_is_plain_and_unwrapped_when_not_a_terminal(capsys) -> None:
+    """README: piped output keeps its progress (plain lines) and its tables (never wrapped)."""
+    from rich.table import Table
+
+    from services.cli.output import make_console, progress
+
+    console = make_console()  # pytest captures stdout: not a terminal
+    assert not console.is_terminal
+    with progress(console) as bar:
+        task = bar.add_task("γ-maps", total=4)
+        for _ in range(4):
+            bar.advance(task)
+    table = Table(title="fp locate a/very/long/path/to/frames.uff")
+    for k in range(10):
+        table.add_column(f"column number {k}")
+    table.add_row(*[f"value {k} with some width" for k in range(10)])
+    console.print(table)
+    out = capsys.readouterr().out
+    assert "γ-maps 1/4 (" in out and "γ-maps 4/4 (" in out and "\x1b[" not in out
+    row = next(line for line in out.splitlines() if "value 0" in line)
+    assert "value 9 with some width" in row and len(row) > 200  # one line, not wrapped at 80 columns

@@ -10,13 +10,17 @@ confocal image come out.
 from __future__ import annotations
 
 import argparse
+import contextlib
 from pathlib import Path
 
 import numpy as np
 
 from services.bus import DEFAULT_HUB
+from services.cli.output import make_console
 
 __all__ = ["add_demo_parser", "cmd_demo"]
+
+COLUMNS = ("frame", "target", "position (mm)", "truth (mm)", "error (mm)", "C_γ", "PFA", "track")
 
 
 def add_demo_parser(sub: argparse._SubParsersAction) -> None:
@@ -50,7 +54,7 @@ def add_demo_parser(sub: argparse._SubParsersAction) -> None:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """Publisher → processor → recorder on loopback with the simulated sinking-sphere scenario."""
-    from rich.console import Console, Group
+    from rich.console import Group
     from rich.live import Live
     from rich.table import Table
 
@@ -67,7 +71,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if args.adc_bits != 0 and not 2 <= args.adc_bits <= 16:
         raise ValueError(f"--adc-bits: expected 0 (float32 RF) or 2…16, got {args.adc_bits}")
     hub = demo_hub(args.listen)
-    console = Console()
+    console = make_console()  # not a terminal: plain lines, one per detection, instead of the live table
     sim = SimulatorSource(args.scenario, n_frames=args.frames, quick=not args.full, seed=args.seed)
     source = QuantisedSource(sim, args.adc_bits) if args.adc_bits else sim
     # The default grid: the record's whole time window, the suspension's surface included — no depth
@@ -82,7 +86,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
             title=f"fp demo — {args.scenario} ({'full' if args.full else 'quick'}): "
             f"{len({r[0] for r in rows})}/{n_total} frames"
         )
-        for col in ("frame", "target", "position (mm)", "truth (mm)", "error (mm)", "C_γ", "PFA", "track"):
+        for col in COLUMNS:
             t.add_column(col, justify="right")
         for r in rows[-12:]:
             t.add_row(*r)
@@ -91,6 +95,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     history: list[dict] = []
 
     def on_frame(res: dict) -> None:
+        n_rows = len(rows)
         truths = dict(truth_positions(res["truth"]))  # the frame's truth, as the RF message carries it
         tracks = {tr["fingerprint"]: f"{tr['id']} {tr.get('status') or ''}".strip() for tr in res["tracks"]}
         if not res["detections"]:
@@ -111,6 +116,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
                     str(tracks.get(d["fingerprint"], "")),
                 )
             )
+        if not console.is_terminal:
+            for r in rows[n_rows:]:
+                console.print("  ".join(f"{c}={v}" for c, v in zip(COLUMNS, r, strict=True) if v))
         last.update(res)
         history.append(
             {"frame_index": res["frame_index"], "tracks": res["tracks"], "truth": res["truth"].get("targets", [])}
@@ -123,7 +131,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
     )
     follow = "fp view --live" + ("" if hub == DEFAULT_HUB else f" --connect {hub}")
     console.print(f"bus: {hub} (follow it with `{follow} --rig {args.rig}`)")
-    with Live(Group(table()), console=console, refresh_per_second=4, get_renderable=lambda: Group(table())):
+    live = (
+        Live(Group(table()), console=console, refresh_per_second=4, get_renderable=lambda: Group(table()))
+        if console.is_terminal
+        else contextlib.nullcontext()
+    )
+    with live:
         summary = run_pipeline(
             source,
             rig=args.rig,
