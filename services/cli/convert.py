@@ -86,7 +86,8 @@ def run_convert(args: argparse.Namespace) -> int:
     a = frames[0]
     print(
         f"{dst}: {len(frames)} frame(s), {a.probe.n_elements} elements, {a.sequence.n_waves} plane waves, "
-        f"{a.n_samples} samples at {a.fs / 1e6:g} MHz ({kind})"
+        f"{a.n_samples} samples at {a.fs / 1e6:g} MHz ({kind}"
+        + (f", written as IQ at f_m = {args.modulation_frequency / 1e6:g} MHz)" if args.modulation_frequency else ")")
     )
     return 0
 
