@@ -441,7 +441,7 @@ class Pipeline:
             if ref is None:
                 self.cfg, self._geom = new_cfg, None
                 return
-            check_setup_size(ref, new_cfg.band or ref.default_band(), new_cfg.n_freq)
+            check_setup_size(ref, new_cfg.band or ref.default_band(), new_cfg.n_freq, new_cfg.memory_budget)
             saved = self._snapshot()
             built = [n for n, e in self._entries.items() if e.fp is not None]
             try:

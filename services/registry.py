@@ -19,7 +19,7 @@ Protocol (server: :class:`DictionaryServer`, client: :func:`dictionary_request`)
   "n_peaks": k}``: fingerprints are rebuilt.
 
 Changes are transactional: ``add`` and ``set`` are validated and built on the side (``set`` also has its
-set-up size checked against a memory limit first, :func:`check_setup_size`); the host keeps them only
+set-up size checked against the memory budget first, :func:`check_setup_size`); the host keeps them only
 on success. A refused change answers ``ok: false`` with the reason and leaves the dictionary and its
 parameters exactly as they were.
 
@@ -33,13 +33,13 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 import queue
 import threading
 import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
+from fpcore import budget
 from services.messages import RFFrame
 from services.topics import Keys
 from services.wire import MAGIC, WireError, decode
@@ -59,7 +59,6 @@ __all__ = [
     "FingerprintSpec",
     "check_setup_size",
     "dictionary_request",
-    "memory_limit_bytes",
     "set_changes",
     "spec_from_request",
 ]
@@ -71,9 +70,6 @@ RESERVED = frozenset({"list", "add", "remove", "set", "**", "*"})
 
 #: The parameters a ``set`` query may change.
 SET_PARAMS = ("band_hz", "n_freq", "svd_threshold", "n_peaks")
-
-#: Share of the machine's physical memory one set-up may ask for (:func:`check_setup_size`).
-SETUP_MEMORY_FRACTION = 0.5
 
 
 @dataclass
@@ -202,34 +198,23 @@ def set_changes(params: Any) -> dict[str, Any]:
     return changes
 
 
-def memory_limit_bytes() -> int:
-    """What one set-up may allocate: :data:`SETUP_MEMORY_FRACTION` of the physical memory (8 GiB when the
-    platform does not say)."""
-    try:
-        total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):
-        total = 16 << 30
-    return int(total * SETUP_MEMORY_FRACTION)
-
-
-def check_setup_size(acq: Acquisition, band: tuple[float, float], n_freq: int | None, limit: int | None = None) -> int:
+def check_setup_size(
+    acq: Acquisition, band: tuple[float, float], n_freq: int | None, limit: int | None = None
+) -> float:
     """Estimated bytes of the spectrum stage of a set-up for frames like ``acq`` (``Acquisition.spectrum``:
-    the zero-padded float32 record and its complex64 half spectrum, n_fft = max(N_t, n_freq fs / band)
-    or 2 N_t, plus three copies of the kept bins); ValueError before anything is allocated when it
-    exceeds ``limit`` (default :func:`memory_limit_bytes`)."""
-    n_t, fs = int(acq.n_samples), float(acq.fs)
+    the complex64 half spectrum of the zero-padded record, N_FFT from ``fpcore.budget.spectrum_bins``, and
+    three copies of the kept bins, as ``fpcore.budget.imaging_bytes`` counts them); ``fpcore.budget.BudgetError``
+    (a ValueError) before anything is allocated when it exceeds ``limit`` (default: the memory budget)."""
     n_ch = int(acq.probe.n_elements) * int(acq.sequence.n_waves)
-    width = float(band[1]) - float(band[0])
-    n_fft = 2 * n_t if n_freq is None else max(n_t, math.ceil(n_freq * fs / width))
-    kept = min(n_fft // 2 + 1, math.ceil(width / fs * n_fft) + 1) if n_freq is None else n_freq
-    need = n_ch * (8 * n_fft + 24 * kept)
-    limit = memory_limit_bytes() if limit is None else limit
-    if need > limit:
-        raise ValueError(
-            f"set: refused, n_freq={n_freq} over the band {band[0] / 1e6:g}–{band[1] / 1e6:g} MHz needs "
-            f"about {need / 2**30:.1f} GiB for the spectrum of a {n_ch}-channel frame; the limit is "
-            f"{limit / 2**30:.1f} GiB"
-        )
+    n_fft, n_f = budget.spectrum_bins(int(acq.n_samples), float(acq.fs), band, n_freq)
+    need = 8.0 * n_ch * (n_fft / 2 + 1) + 3 * 8.0 * n_f * n_ch
+    budget.check(
+        f"set: refused, n_freq={n_freq} over the band {band[0] / 1e6:g}–{band[1] / 1e6:g} MHz "
+        f"({n_ch}-channel frames, N_FFT {n_fft})",
+        need,
+        "ask for fewer frequencies (n_freq) or a wider band",
+        budget=limit,
+    )
     return need
 
 

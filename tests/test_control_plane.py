@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import services.pipeline as pipeline_mod
+from fpcore.budget import BudgetError
 from services.pipeline import Pipeline, PipelineConfig
 from services.registry import DictionaryServer, FingerprintSpec, check_setup_size, set_changes
 from services.sources import born_frames
@@ -51,7 +52,7 @@ def test_refused_set_leaves_the_pipeline_as_it_was(data) -> None:
     before = _state(pipe)
     g_before = _gammas(pipe, data["frames"][1])
     bad: list[tuple[dict[str, Any], str]] = [
-        ({"n_freq": 20_000_000}, r"needs about \d+\.\d GiB .* the limit is"),  # size refusal, nothing allocated
+        ({"n_freq": 20_000_000}, r"set: refused, n_freq=20000000 .* needs about .*GiB, over the memory budget"),
         ({"band_hz": [1e6, 1e9]}, "fs/2"),  # passes the parser, fails in the set-up (above Nyquist)
         ({"n_freq": "many"}, "n_freq must be a finite number"),
         ({"n_freq": 0}, "n_freq must be an integer >= 1"),
@@ -110,7 +111,7 @@ def test_refused_queries_answer_ok_false_and_change_nothing(data) -> None:
     server = DictionaryServer(None, k, pipe)  # type: ignore[arg-type]  # handle() needs no session
     before = _state(pipe)
     ok, doc, _ = server.handle(k.dictionary_op("set"), json.dumps({"n_freq": 20_000_000}).encode(), b"")
-    assert not ok and not doc["ok"] and "GiB" in doc["error"] and doc["params"]["n_freq"] == 24
+    assert not ok and not doc["ok"] and "over the memory budget" in doc["error"] and doc["params"]["n_freq"] == 24
     with pytest.raises(ValueError, match="expected a JSON object"):  # the server thread answers ok:false
         server.handle(k.dictionary_op("set"), b"{not json", b"")
     with pytest.raises(ValueError, match="mirror needs L"):
@@ -132,9 +133,9 @@ def test_set_parser_and_size_estimate(data) -> None:
             set_changes(bad)
     acq = data["frames"][0]  # 32 elements × 5 waves × 400 samples at 20 MHz
     small = check_setup_size(acq, (1.5e6, 3.5e6), 24)
-    assert small == 160 * (8 * 400 + 24 * 24)  # n_fft = max(N_t, 24 × 20 MHz / 2 MHz) = 400
-    big = 160 * (8 * 200_000_000 + 24 * 20_000_000)
-    with pytest.raises(ValueError, match="limit is 1.0 GiB"):
+    assert small == 8 * 160 * 201 + 24 * 24 * 160  # N_FFT = max(N_t, 24 × 20 MHz / 2 MHz) = 400: 201 bins, 24 kept
+    big = 8 * 160 * 100_000_001 + 24 * 20_000_000 * 160  # N_FFT = 20e6 × 20 MHz / 2 MHz = 2e8
+    with pytest.raises(BudgetError, match="over the memory budget of 1 GiB"):
         check_setup_size(acq, (1.5e6, 3.5e6), 20_000_000, limit=1 << 30)
     assert check_setup_size(acq, (1.5e6, 3.5e6), 20_000_000, limit=big) == big
 
@@ -159,7 +160,7 @@ def test_refused_set_through_the_queryable_keeps_the_processor_running(data) -> 
             assert wait_for_token(s, keys(rig).alive("processor"), 20)
             listing = dictionary_request(s, rig, "list")
             res = dictionary_request(s, rig, "set", payload={"n_freq": 20_000_000})
-            assert res["ok"] is False and "limit is" in res["error"] and "GiB" in res["error"]
+            assert res["ok"] is False and "over the memory budget" in res["error"] and "n_freq=20000000" in res["error"]
             assert res["params"] == listing["params"] and node.cfg.n_freq == 24
             assert dictionary_request(s, rig, "list") == listing
             summary = Publisher(s, rig, AcquisitionSource(data["frames"][:2]), pace="ack", wait_timeout=20).run()
