@@ -140,7 +140,7 @@ def test_velocity_uses_the_motion_aware_fingerprint(tmp_path, capsys) -> None:
                 "locate",
                 str(tmp_path / "frames.uff"),
                 "--calibration",
-                str(tmp_path / "calibration.uff"),
+                str(tmp_path / "calibration_cylinder.uff"),
                 "--velocity",
                 "fast",
             ]
