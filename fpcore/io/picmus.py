@@ -19,6 +19,9 @@ initial_time_n + k/fs with time zero when the plane wavefront crosses the origin
 are aligned onto their minimum by a band-limited shift, as the UFF reader does. IQ data are converted to
 RF with USTB's phase convention (fpcore/io/iq.py: why, and how).
 
+USTB also distributes the challenge's datasets as UFF (``PICMUS_experiment_resolution_distortion.uff``, …,
+in USTB's ``examples/picmus``): :func:`fpcore.io.read_uff` reads those.
+
 A PICMUS file holds one frame and no transducer band: the band is estimated from the data's mean power
 spectrum (−6 dB) unless given, the pitch is the smallest element spacing. Files written here add a 4-D
 ``data`` (N_frames, N_angles, N_channels, N_samples) for several frames and the ``fp_metadata`` /
