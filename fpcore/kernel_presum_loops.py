@@ -9,11 +9,20 @@ numba/OpenMP pool, whose spinning workers fight each other on a 2-core machine (
 measured here). Indices are uint64 (no negative-index wraparound code) and inner loops have run-time
 lengths, so LLVM's loop vectorizer emits AVX code (numba leaves the SLP vectorizer off). Without numba
 (`nb` None) only `pool`, `split` and the constants exist.
+
+Compiled once per machine (issue 15, item 4): the kernels are cached on disk (`cache=True`), so a fresh
+process loads them (a first frame costs what the next ones do) instead of compiling them (seconds).
+numba keeps the cache next to this file (`__pycache__`, a clean clone), or in the user's cache
+folder when the package is read-only, or in NUMBA_CACHE_DIR when set; when none of these can be
+written (read-only install and home) `_jit` points NUMBA_CACHE_DIR's setting at a per-user folder of
+the temporary directory, and compiles without a cache only if that fails too — importing never fails.
 """
 
 from __future__ import annotations
 
 import importlib
+import os
+import tempfile
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -34,8 +43,28 @@ FRAC = 40  # fractional bits of the fixed-point depth positions
 u64 = np.uint64  # every index of the kernels (no negative-index wraparound code)
 
 
+def _fallback_cache_dir() -> str:
+    """A per-user numba cache folder in the temporary directory (used when numba finds no writable one)."""
+    user = str(os.getuid()) if hasattr(os, "getuid") else os.environ.get("USERNAME", "user")
+    return os.path.join(tempfile.gettempdir(), f"fpcore-numba-cache-{user}")
+
+
+def _jit(fn: Callable[..., None]) -> Callable[..., None]:
+    """numba.njit(fastmath, nogil, cached on disk; see the module doc for where)."""
+    assert nb is not None
+    try:
+        return nb.njit(fastmath=True, cache=True, nogil=True)(fn)
+    except RuntimeError:  # "cannot cache function …: no locator available": nothing numba tried is writable
+        if not nb.config.CACHE_DIR:
+            nb.config.CACHE_DIR = _fallback_cache_dir()
+            try:
+                return nb.njit(fastmath=True, cache=True, nogil=True)(fn)
+            except RuntimeError:
+                pass
+        return nb.njit(fastmath=True, nogil=True)(fn)  # compiled at its first call, every process
+
+
 if nb is not None:
-    _jit = nb.njit(fastmath=True, cache=True, nogil=True)
 
     @_jit
     def spread_depth(w, P, Q, ua, ub, go, gi, gbase, glen, tab, dtab, G, f0, fstep):  # pragma: no cover

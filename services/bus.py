@@ -25,7 +25,8 @@ SHM on with a 512 MiB pool when /dev/shm has ≥ 2 GiB free (measured ≈ 2× TC
 and switches SHM off otherwise (TCP loopback, ≈ 0.8 GB/s) so that a small /dev/shm (Docker's
 64 MiB default) never fails allocations; ``"off"`` or a pool size in MiB force either choice. The pool
 is allocated lazily: the first large message a session sends pays for it (≈ 0.5 s for 512 MiB here,
-page faults), so benchmarks leave a few warm-up frames out. Measured with 9 MB frames between two
+page faults); sessions with ``warm_shm`` (``fp process``, ``fp publish``) pay it when they open, before
+the node's "ready" (``services.bus_warm``). Measured with 9 MB frames between two
 processes: 860 MB/s with the pool vs 540 MB/s over TCP loopback (payload copy included); in the
 whole pipeline the gain is small (12.6 vs 12.2 frames/s, 3D bench) because processing dominates.
 
@@ -103,6 +104,7 @@ class BusConfig:
     shm: str | None = "auto"  # "auto" | "off" | pool size in MiB
     connect_timeout_ms: int | None = 2000
     allow_remote: bool = False  # listen on non-loopback addresses (with a warning); refused otherwise
+    warm_shm: bool = False  # create the SHM pool at open, not at the first large message (services.bus_warm)
 
     def shm_pool_bytes(self) -> int | None:
         """Pool size to configure, or None to disable SHM (see the module doc)."""
@@ -242,6 +244,13 @@ def open_session(bus: BusConfig) -> Iterator[zenoh.Session]:
             _log_done = True
     cfg = zenoh_config(bus)
     mode = json.loads(cfg.get_json("mode") or "null") or "peer"
+    warm = False
+    if bus.warm_shm:
+        from services.bus_warm import pin_ephemeral_ports, wants_warmup
+
+        warm = wants_warmup(cfg)
+        if warm:
+            pin_ephemeral_ports(cfg)
     notes = bus_warnings(cfg) if mode != "client" else []
     if notes:
         print(f"fp: warning: {'; '.join(notes)}", file=sys.stderr, flush=True)
@@ -254,11 +263,24 @@ def open_session(bus: BusConfig) -> Iterator[zenoh.Session]:
             where.insert(0, f"listen {listen_endpoints(cfg)}")
         raise OSError(f"bus: could not open the zenoh {mode} session ({', '.join(where)}): {first}") from exc
     with session:
-        yield session
+        sink = None
+        if warm:
+            from services.bus_warm import WARM_KEYS, warm_shm_pool
+
+            sink = session.declare_subscriber(WARM_KEYS, lambda sample: None)  # others' warm-ups map their pools
+            warm_shm_pool(session, cfg)
+        try:
+            yield session
+        finally:
+            if sink is not None:
+                sink.undeclare()
 
 
-def add_bus_arguments(p: argparse.ArgumentParser, listen: str = EPHEMERAL, connect: str | None = DEFAULT_HUB) -> None:
-    """--mode, --listen, --connect, --multicast, --zenoh-config, --shm (defaults per node)."""
+def add_bus_arguments(
+    p: argparse.ArgumentParser, listen: str = EPHEMERAL, connect: str | None = DEFAULT_HUB, warm_shm: bool = False
+) -> None:
+    """--mode, --listen, --connect, --multicast, --zenoh-config, --shm, --allow-remote (defaults per node;
+    ``warm_shm`` for nodes that send large messages, ``BusConfig.warm_shm``)."""
     g = p.add_argument_group("bus (zenoh)")
     g.add_argument("--mode", choices=("peer", "router", "client"), help="zenoh mode (default peer)")
     g.add_argument(
@@ -286,7 +308,7 @@ def add_bus_arguments(p: argparse.ArgumentParser, listen: str = EPHEMERAL, conne
         help="allow listening on a non-loopback address (e.g. tcp/0.0.0.0:7447); prints a warning. "
         "Secure the bus first: docs/wire.md, 'Securing the bus'",
     )
-    p.set_defaults(_bus_listen=listen, _bus_connect=connect)
+    p.set_defaults(_bus_listen=listen, _bus_connect=connect, _bus_warm_shm=warm_shm)
 
 
 def _endpoints(values: list[str] | None, default: str | None, from_file: bool) -> list[str] | None:
@@ -314,6 +336,7 @@ def bus_from_args(args: argparse.Namespace) -> BusConfig:
         shm=args.shm or (None if file else "auto"),
         connect_timeout_ms=args.connect_timeout_ms or (None if file else 2000),
         allow_remote=bool(getattr(args, "allow_remote", False)),
+        warm_shm=bool(getattr(args, "_bus_warm_shm", False)),
     )
     zenoh_config(bus)  # a bad file or an exposed listener fails here, before the node's set-up
     return bus

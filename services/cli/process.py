@@ -103,7 +103,7 @@ def add_process_parser(sub: argparse._SubParsersAction) -> None:
         type=number_in(0, lo_open=False),
         help="stop after this many seconds (default: run until signalled)",
     )
-    add_bus_arguments(p, listen="tcp/127.0.0.1:7447", connect=None)
+    add_bus_arguments(p, listen="tcp/127.0.0.1:7447", connect=None, warm_shm=True)  # sends maps: SHM pool at start
     p.set_defaults(func=run_process)
 
 

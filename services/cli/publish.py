@@ -74,7 +74,7 @@ def add_publish_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--max-frame-bytes", type=int_at_least(1), default=DEFAULT_MAX_BYTES, help="ingest: refuse larger frames"
     )
-    add_bus_arguments(p, listen=EPHEMERAL, connect=DEFAULT_HUB)
+    add_bus_arguments(p, listen=EPHEMERAL, connect=DEFAULT_HUB, warm_shm=True)  # sends frames: SHM pool at start
     p.set_defaults(func=run_publish)
 
 

@@ -1,0 +1,105 @@
+"""Initialise a session's shared-memory pool when it opens, before its node says "ready" (issue 15, item 4).
+
+zenoh creates a session's SHM pool (``transport/shared_memory/transport_optimization``) at the first
+message over the SHM threshold that the session sends, and that first message waits for it: measured
+here with 9 MB frames and the 512 MiB pool of ``services.bus`` (``shm="auto"``), 390–490 ms for the first
+put against 2 ms for the next ones. For a publisher that is the first RF frame, for a processor its
+first maps, so the first frame's latency was ~10× the median. :func:`warm_shm_pool` pays it at start
+instead: a short-lived client session connects to the session's own loopback listener and receives
+64 KiB messages on a key outside ``fp/**`` (no recorder sees them) until one comes through the pool;
+measured, the first frame's put then takes 13–16 ms. A receiver maps a sender's pool at its first
+message from it (≈ 50 ms once): warming sessions also subscribe to the warm-up key, so those already
+linked when another one warms (the processor when a publisher joins) map its pool then.
+
+Only for sessions that send large messages (``BusConfig.warm_shm``: ``fp process``, ``fp publish``),
+that have SHM on and listen on loopback TCP, without user/password authentication (the helper
+session could not log in) — otherwise nothing is done. Listeners on port 0 are given a free port
+first (:func:`pin_ephemeral_ports`) so the helper knows where to connect.
+"""
+
+from __future__ import annotations
+
+import json
+import queue
+import time
+
+import zenoh
+
+__all__ = ["WARM_KEYS", "pin_ephemeral_ports", "wants_warmup", "warm_shm_pool"]
+
+#: Where warm-up messages go; a warming session also subscribes here (``services.bus.open_session``), so a
+#: session that warms later (a publisher joining a processor) reaches it too, and it maps that session's
+#: pool now rather than at its first frame.
+WARM_KEYS = "_fp_warmup/**"
+
+_PAYLOAD = 64 << 10  # above zenoh's message_size_threshold (3 KiB by default)
+
+
+def _loopback_tcp(cfg: zenoh.Config) -> list[str]:
+    from services.bus import _is_loopback, listen_endpoints
+
+    return [e for e in listen_endpoints(cfg) if e.startswith("tcp/") and _is_loopback(e)]
+
+
+def wants_warmup(cfg: zenoh.Config) -> bool:
+    """SHM on, not a client, a loopback TCP listener, no user/password login, tcp not excluded."""
+    get = lambda key: json.loads(cfg.get_json(key) or "null")  # noqa: E731
+    protocols = get("transport/link/protocols")
+    return (
+        bool(get("transport/shared_memory/enabled"))
+        and (get("mode") or "peer") != "client"
+        and get("transport/auth/usrpwd/dictionary_file") is None
+        and (protocols is None or "tcp" in protocols)
+        and bool(_loopback_tcp(cfg))
+    )
+
+
+def pin_ephemeral_ports(cfg: zenoh.Config) -> None:
+    """Loopback ``tcp/…:0`` listeners get a port that is free now (the helper session must know it)."""
+    from services.bus import free_port, listen_endpoints
+
+    eps = listen_endpoints(cfg)
+    pinned = [f"{e[:-2]}:{free_port()}" if e.startswith("tcp/127.") and e.endswith(":0") else e for e in eps]
+    if pinned != eps:
+        cfg.insert_json5("listen/endpoints", json.dumps(pinned))
+
+
+def warm_shm_pool(session: zenoh.Session, cfg: zenoh.Config, timeout: float = 5.0) -> bool:
+    """Make ``session`` create its SHM pool now (see the module doc); True once a message reached the helper
+    through shared memory."""
+    from services.bus import wait_for_matching
+
+    eps = [e for e in _loopback_tcp(cfg) if not e.endswith(":0")]
+    if not eps:
+        return False
+    helper = zenoh.Config()
+    helper.insert_json5("mode", '"client"')
+    helper.insert_json5("connect/endpoints", json.dumps(eps[:1]))
+    helper.insert_json5("scouting/multicast/enabled", "false")
+    helper.insert_json5("transport/shared_memory/enabled", "true")
+    key = f"_fp_warmup/{session.info.zid()}"
+    received: queue.Queue[bool] = queue.Queue()
+    try:
+        with zenoh.open(helper) as h:
+            sub = h.declare_subscriber(key, lambda sample: received.put(sample.payload.as_shm() is not None))
+            pub = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+            deadline = time.monotonic() + timeout
+            try:
+                if not wait_for_matching(pub, timeout):
+                    return False
+                # The pool is created in the background of the first large put, which itself goes by TCP;
+                # put again until a message travels through the pool (the second one, here).
+                while time.monotonic() < deadline:
+                    pub.put(bytes(_PAYLOAD))
+                    try:
+                        if received.get(timeout=0.5):
+                            return True
+                        time.sleep(0.02)  # it came by TCP: the pool is still being made
+                    except queue.Empty:  # the helper's subscription may not have reached the session yet
+                        pass
+                return False
+            finally:
+                pub.undeclare()
+                sub.undeclare()
+    except zenoh.ZError:
+        return False

@@ -1,0 +1,95 @@
+"""No first-frame stall (issue 15, item 4): the numba kernels of fpcore.kernel_presum_loops are cached on disk, so a
+fresh process loads them instead of compiling them, and importing never fails for want of a writable cache folder;
+sessions that send large messages create their shared-memory pool when they open (services.bus_warm), not at their
+first frame. (The latency ratio itself is measured by bench/bench_first_frame.py: no wall-clock test here.)"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("numba")
+
+ROOT = Path(__file__).resolve().parent.parent
+
+# A small γ through the structured kernel (both lateral variants), then each kernel's cache hits and misses.
+RUN = """
+import json, numpy as np
+import fpcore.kernel_presum_loops as L
+from fpcore.grid import Grid
+from fpcore.kernel_presum import PresumTransform
+ax = (np.arange(4) - 1.5) * 0.037
+yy, xx = np.meshgrid(ax, ax, indexing="ij")
+so = np.stack([xx.ravel(), yy.ravel()], 1)
+si = np.array([[-0.037, 0.0], [0.0, 0.0], [0.037, 0.0]])
+freqs = np.linspace(3e6, 5e6, 4)
+grid = Grid.centred((0.0, 0.0, 12e-3), (6, 5, 7), 0.1e-3)
+w = np.ones(freqs.size * so.shape[0] * si.shape[0], np.complex64)
+for lateral in ("exact", "nufft"):
+    PresumTransform(freqs, so, si, 1540.0, grid, nthreads=1, lateral=lateral)(w)
+names = [n for n in dir(L) if hasattr(getattr(L, n), "stats") and hasattr(getattr(L, n), "py_func")]
+print(json.dumps({n: [sum(getattr(L, n).stats.cache_hits.values()), sum(getattr(L, n).stats.cache_misses.values())]
+                  for n in names}))
+"""
+
+
+def _run(code: str, env: dict[str, str]) -> dict:
+    res = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, timeout=240, check=False
+    )
+    assert res.returncode == 0, res.stderr[-3000:]
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.timeout(300)
+def test_a_fresh_process_loads_the_kernels_from_the_disk_cache(tmp_path) -> None:
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    first = _run(RUN, env)  # an empty cache folder: every kernel used is compiled and written
+    used = {n for n, (_, misses) in first.items() if misses}
+    assert {"spread_depth", "depth_synthesis"} <= used and len(used) >= 4, first
+    assert len(list((tmp_path / "cache").rglob("*.nbi"))) >= len(used)
+    second = _run(RUN, env)  # a fresh process: loaded, nothing compiled (a kernel only called by others,
+    assert all(misses == 0 for _, misses in second.values()), second  # e.g. accumulate, is inside its callers)
+    assert sum(hits for hits, _ in second.values()) >= len(used) - 1 and second["spread_depth"][0] >= 1, second
+
+
+def test_no_writable_cache_folder_falls_back_to_the_temporary_directory() -> None:
+    """numba finds no locator (only the NUMBA_CACHE_DIR one allowed, and it unset): the decorator points the
+    cache at a per-user folder of the temporary directory instead of failing the import."""
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    env["NUMBA_CACHE_LOCATOR_CLASSES"] = "UserProvidedCacheLocator"
+    code = (
+        "import json, numba, fpcore.kernel_presum_loops as L; "
+        "print(json.dumps({'dir': numba.config.CACHE_DIR, 'fallback': L._fallback_cache_dir(), "
+        "'cache_path': L.spread_depth.stats.cache_path}))"
+    )
+    doc = _run(code, env)
+    assert doc["dir"] == doc["fallback"] and doc["cache_path"].startswith(doc["fallback"])
+
+
+def test_a_sending_session_creates_its_shm_pool_when_it_opens() -> None:
+    import zenoh
+
+    from services.bus import EPHEMERAL, BusConfig, zenoh_config
+    from services.bus_warm import pin_ephemeral_ports, wants_warmup, warm_shm_pool
+
+    if BusConfig(shm="auto").shm_pool_bytes() is None:
+        pytest.skip("/dev/shm has no room for a pool: SHM is off here")
+    cfg = zenoh_config(BusConfig(listen=[EPHEMERAL], connect=[], shm="64", warm_shm=True))
+    assert wants_warmup(cfg)
+    pin_ephemeral_ports(cfg)
+    (endpoint,) = json.loads(cfg.get_json("listen/endpoints"))
+    assert endpoint.startswith("tcp/127.0.0.1:") and not endpoint.endswith(":0")
+    with zenoh.open(cfg) as session:
+        assert warm_shm_pool(session, cfg)  # the helper received the 64 KiB message through shared memory
+    # Nothing to do without SHM, in client mode (no listener) or when the listener wants a login.
+    assert not wants_warmup(zenoh_config(BusConfig(listen=[EPHEMERAL], connect=[], shm="off")))
+    assert not wants_warmup(zenoh_config(BusConfig(mode="client", listen=None, connect=[EPHEMERAL], shm="64")))
+    login = zenoh_config(BusConfig(listen=[EPHEMERAL], connect=[], shm="64"))
+    login.insert_json5("transport/auth/usrpwd/dictionary_file", '"/dev/null"')
+    assert not wants_warmup(login)
