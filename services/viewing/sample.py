@@ -41,10 +41,7 @@ def make_sample_recording(
             processor=ProcessorConfig(rig="demo", queue="fifo", grid=grid),
         )
         sources = (
-            m
-            for src in summary["recording"]["files"]
-            for m in iter_raw(src)
-            if m[1].topic.split("/")[2] not in drop
+            m for src in summary["recording"]["files"] for m in iter_raw(src) if m[1].topic.split("/")[2] not in drop
         )
         with open(path, "wb") as f:
             w = Writer(f, compression=CompressionType.ZSTD)
