@@ -30,11 +30,17 @@ def _split(text: str, option: str) -> tuple[float, str]:
     return value, m.group(2)
 
 
+def _finite(value: float, text: str, option: str) -> float:
+    if not math.isfinite(value):
+        raise UnitError(f"{option}: expected a finite quantity, got {text!r}")
+    return value
+
+
 def parse_length(text: str, option: str = "length") -> float:
     value, unit = _split(text, option)
     if unit not in _LENGTH:
         raise UnitError(f"{option}: unknown length unit {unit!r} in {text!r} (use m, cm, mm or um)")
-    return value * _LENGTH[unit]
+    return _finite(value * _LENGTH[unit], text, option)
 
 
 def parse_position(text: str, option: str = "position", n: tuple[int, ...] = (2, 3)) -> list[float]:
@@ -62,7 +68,7 @@ def parse_frequency(text: str, option: str = "frequency") -> float:
     value, unit = _split(text, option)
     if unit.lower() not in _FREQ:
         raise UnitError(f"{option}: unknown frequency unit {unit!r} in {text!r} (use Hz, kHz or MHz)")
-    return value * _FREQ[unit.lower()]
+    return _finite(value * _FREQ[unit.lower()], text, option)
 
 
 def parse_band(text: str, option: str = "--band") -> tuple[float, float]:

@@ -637,7 +637,20 @@ def read_uff(
 
     dataset: name of the uff.channel_data group (needed when the file holds several).
     frames: indices or slice of the frames to read (default: all).
+
+    Bad input raises a ValueError that names the file or field: :class:`UFFError`, ``fpcore.budget.BudgetError``
+    (declared sizes beyond the memory budget) or ``fpcore.io.formats.FormatError`` (another format); whatever
+    a damaged HDF5 file makes h5py raise is turned into a UFFError naming the file.
     """
+    try:
+        return _read_uff(path, dataset, frames)
+    except (ValueError, MemoryError):
+        raise
+    except Exception as exc:  # safety net: h5py on a damaged file (KeyError, RuntimeError, OSError, ...)
+        raise UFFError(f"{path}: expected a readable UFF (HDF5) file, got {type(exc).__name__}: {exc}") from exc
+
+
+def _read_uff(path: PathLike, dataset: str | None, frames: Sequence[int] | slice | None) -> list[Acquisition]:
     if not Path(path).is_file():
         raise UFFError(f"{path}: expected an existing UFF (HDF5) file, found none")
     if dataset is None and _detect(path) == "picmus":
