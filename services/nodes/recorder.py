@@ -173,8 +173,9 @@ def _key_exprs(option: str, values: list[str] | None) -> list[zenoh.KeyExpr]:
         try:
             out.append(zenoh.KeyExpr(v))
         except Exception as exc:  # zenoh.ZError: not a key expression
+            why = str(exc).split(" at /")[0]  # zenoh appends its Rust source location
             raise ValueError(
-                f"{option}: expected a zenoh key expression such as 'fp/*/rf', got {v!r} ({exc})"
+                f"{option}: expected a zenoh key expression such as 'fp/*/rf', got {v!r} ({why})"
             ) from None
     return out
 
