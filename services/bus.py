@@ -15,9 +15,10 @@ Exposure (docs/wire.md, "Securing the bus"): a node listens on loopback unless t
 endpoint on any other address — ``tcp/0.0.0.0:…``, a host name, an interface address, or zenoh's
 own default ``tcp/[::]:…`` when a config file gives none — is refused with one line unless the node
 is started with ``--allow-remote`` (``BusConfig.allow_remote``); then it prints a warning, which
-also says when the session has no user/password authentication or a link is not TLS. Access control,
-authentication and TLS are zenoh's own (``transport/auth/usrpwd``, ``access_control``, ``tls/``
-endpoints), configured in the ``--zenoh-config`` file; ``deploy/zenoh/`` holds an example.
+also says when the session has no user/password authentication or a link is not TLS
+(``services.bus_exposure``). Access control, authentication and TLS are zenoh's own
+(``transport/auth/usrpwd``, ``access_control``, ``tls/`` endpoints), configured in the
+``--zenoh-config`` file; ``deploy/zenoh/`` holds an example.
 
 Shared memory (stack notes): zenoh 1.x moves messages ≥ 3 KB through SHM between processes on one
 host, from a 16 MiB pool by default — too small for 10–50 MB frames. ``shm="auto"`` (default) keeps
@@ -42,11 +43,9 @@ import argparse
 import contextlib
 import ctypes
 import ctypes.util
-import ipaddress
 import json
 import os
 import queue
-import re
 import shutil
 import signal
 import socket
@@ -59,6 +58,7 @@ from typing import Any, Generic, Literal, TypeVar
 
 import zenoh
 
+from services.bus_exposure import bus_warnings, config_file, listen_endpoints, remote_endpoints, zerror_line
 from services.messages import Message
 from services.wire import encode_with_header
 
@@ -126,63 +126,12 @@ class BusConfig:
         return mib << 20
 
 
-_LOOPBACK_NAMES = {"localhost", "ip6-localhost", "ip6-loopback"}
-_LOCAL_PROTOCOLS = {"unixsock-stream", "unixpipe"}
-
-
-def _is_loopback(endpoint: str) -> bool:
-    """True for an endpoint only this host can reach: a loopback address or name, or a Unix socket/pipe."""
-    proto, _, rest = endpoint.partition("/")
-    if proto in _LOCAL_PROTOCOLS:
-        return True
-    address = rest.split("?", 1)[0].split("#", 1)[0]
-    host = address.rsplit(":", 1)[0] if ":" in address else address
-    host = host.strip("[]").lower()
-    if host in _LOOPBACK_NAMES:
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False  # a host name, or no address at all: it may be reachable from elsewhere
-
-
-def listen_endpoints(cfg: zenoh.Config) -> list[str]:
-    """The endpoints a session of ``cfg`` will listen on, zenoh's per-mode defaults included (a router
-    with no ``listen/endpoints`` listens on ``tcp/[::]:7447``, every interface)."""
-    mode = json.loads(cfg.get_json("mode") or "null") or "peer"
-    eps = json.loads(cfg.get_json("listen/endpoints") or "null")
-    if isinstance(eps, dict):
-        eps = eps.get(mode, [])
-    return [str(e) for e in eps or []]
-
-
-def remote_endpoints(endpoints: list[str]) -> list[str]:
-    """The endpoints of ``endpoints`` that other hosts may reach (not loopback, not a local socket)."""
-    return [e for e in endpoints if not _is_loopback(e)]
-
-
-def bus_warnings(cfg: zenoh.Config) -> list[str]:
-    """What a session of ``cfg`` exposes: remote listeners, and then whether they lack authentication or TLS."""
-    remote = remote_endpoints(listen_endpoints(cfg))
-    if not remote:
-        return []
-    notes = [f"listening on {', '.join(remote)}: other hosts can reach this node"]
-    if json.loads(cfg.get_json("transport/auth/usrpwd/dictionary_file") or "null") is None:
-        notes.append("no user/password authentication (transport/auth/usrpwd/dictionary_file)")
-    plain = [e for e in remote if e.partition("/")[0] not in ("tls", "quic")]
-    if plain:
-        notes.append(f"not encrypted ({', '.join(plain)}; use tls/ endpoints)")
-    if not json.loads(cfg.get_json("access_control/enabled") or "false"):
-        notes.append("no access control rules")
-    return notes
-
-
 def zenoh_config(bus: BusConfig) -> zenoh.Config:
     """The zenoh.Config of ``bus`` (file first, then the explicit settings). ValueError (one line) for an
     unreadable file, or a listen endpoint off loopback without ``allow_remote``."""
     if bus.mode not in (None, "peer", "router", "client"):
         raise ValueError(f"--mode: expected peer, router or client, got {bus.mode!r}")
-    cfg = _config_file(bus.config_file) if bus.config_file else zenoh.Config()
+    cfg = config_file(bus.config_file) if bus.config_file else zenoh.Config()
     if bus.mode is not None:
         cfg.insert_json5("mode", json.dumps(bus.mode))
     mode = json.loads(cfg.get_json("mode") or "null") or "peer"
@@ -208,26 +157,6 @@ def zenoh_config(bus: BusConfig) -> zenoh.Config:
             "--allow-remote to accept that, after securing the bus (docs/wire.md, 'Securing the bus')"
         )
     return cfg
-
-
-def _config_file(path: str) -> zenoh.Config:
-    if not os.path.isfile(path):
-        raise ValueError(f"--zenoh-config: no such file {path!r}")
-    try:
-        return zenoh.Config.from_file(path)
-    except zenoh.ZError as exc:
-        raise ValueError(f"--zenoh-config {path}: not a valid zenoh configuration: {_zerror_line(exc)}") from None
-
-
-def _zerror_line(exc: BaseException) -> str:
-    """One line from a zenoh error: no Rust source location; a JSON5 syntax error as its position and message."""
-    text = re.sub(r"\s+at /\S+\.rs:\d+\.?", "", str(exc)).strip()
-    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
-    loc = next((ln[3:].strip() for ln in lines if ln.startswith("-->")), None)
-    msg = next((ln[1:].strip() for ln in lines if ln.startswith("=")), None)
-    if loc and msg:
-        return f"at line:column {loc}: {msg}"
-    return " ".join(lines) or type(exc).__name__
 
 
 _log_once = threading.Lock()
@@ -257,7 +186,7 @@ def open_session(bus: BusConfig) -> Iterator[zenoh.Session]:
     try:
         session = zenoh.open(cfg)
     except zenoh.ZError as exc:
-        first = _zerror_line(exc)
+        first = zerror_line(exc)
         where = [f"connect {json.loads(cfg.get_json('connect/endpoints') or 'null') or []}"]
         if mode != "client":
             where.insert(0, f"listen {listen_endpoints(cfg)}")
@@ -344,7 +273,7 @@ def bus_from_args(args: argparse.Namespace) -> BusConfig:
 
 def _file_sets_listen(path: str) -> bool:
     """Whether the zenoh config file ``path`` gives its own ``listen/endpoints``."""
-    value = _config_file(path).get_json("listen/endpoints")
+    value = config_file(path).get_json("listen/endpoints")
     return value != zenoh.Config().get_json("listen/endpoints")
 
 

@@ -25,6 +25,8 @@ import time
 
 import zenoh
 
+from services.bus_exposure import is_loopback, listen_endpoints
+
 __all__ = ["WARM_KEYS", "pin_ephemeral_ports", "wants_warmup", "warm_shm_pool"]
 
 #: Where warm-up messages go; a warming session also subscribes here (``services.bus.open_session``), so a
@@ -36,9 +38,7 @@ _PAYLOAD = 64 << 10  # above zenoh's message_size_threshold (3 KiB by default)
 
 
 def _loopback_tcp(cfg: zenoh.Config) -> list[str]:
-    from services.bus import _is_loopback, listen_endpoints
-
-    return [e for e in listen_endpoints(cfg) if e.startswith("tcp/") and _is_loopback(e)]
+    return [e for e in listen_endpoints(cfg) if e.startswith("tcp/") and is_loopback(e)]
 
 
 def wants_warmup(cfg: zenoh.Config) -> bool:
@@ -56,7 +56,7 @@ def wants_warmup(cfg: zenoh.Config) -> bool:
 
 def pin_ephemeral_ports(cfg: zenoh.Config) -> None:
     """Loopback ``tcp/…:0`` listeners get a port that is free now (the helper session must know it)."""
-    from services.bus import free_port, listen_endpoints
+    from services.bus import free_port
 
     eps = listen_endpoints(cfg)
     pinned = [f"{e[:-2]}:{free_port()}" if e.startswith("tcp/127.") and e.endswith(":0") else e for e in eps]
