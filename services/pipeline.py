@@ -43,6 +43,8 @@ __all__ = [
     "find_targets",
     "geometry_key",
     "make_imager",
+    "make_tracker",
+    "tracker_settings",
     "truth_error",
     "truth_positions",
 ]
@@ -105,11 +107,34 @@ class FrameResult:
     detections: list[tuple[Detection, float | None]]
     tracks: list[TrackState]
     stage_s: dict[str, float] = field(default_factory=dict)
+    nulls: dict[str, NullModel] = field(default_factory=dict)  # each γ-map's null model (a merger's tracker)
 
 
 def geometry_key(acq: Acquisition) -> tuple:
     """What a set-up depends on: element positions, transmit sines, sampling, record length, sound speed."""
     return (acq.probe.positions.tobytes(), acq.sequence.sines.tobytes(), float(acq.fs), acq.n_samples, float(acq.c0))
+
+
+def tracker_settings(acq: Acquisition, band: tuple[float, float], cfg: PipelineConfig) -> dict[str, float]:
+    """What the tracker of frames like ``acq`` depends on besides the grid (JSON-safe: a sharded merger gets
+    it from the workers, services.nodes.merger): wavelength, aperture, bandwidth, sound speed, tracks per map
+    (one per fingerprint and expected target, ``n_peaks``: a calibration describes one object), frames
+    integrated."""
+    return {
+        "wavelength": acq.c0 / acq.probe.centre_frequency,
+        "aperture": float(acq.probe.aperture[0]),
+        "bandwidth": band[1] - band[0],
+        "c0": float(acq.c0),
+        "max_tracks_per_map": max(1, cfg.n_peaks),
+        "integrate_frames": cfg.track_integrate,
+    }
+
+
+def make_tracker(grid: Grid, settings: Mapping[str, Any]) -> Tracker:
+    """The tracker of :func:`tracker_settings` on ``grid``."""
+    s = settings
+    config = TrackerConfig(max_tracks_per_map=int(s["max_tracks_per_map"]), integrate_frames=int(s["integrate_frames"]))
+    return Tracker(grid, s["wavelength"], s["aperture"], s["bandwidth"], s["c0"], config)
 
 
 def make_imager(
@@ -316,20 +341,7 @@ class Pipeline:
             self._band = band
             self._geom = geometry_key(acq)
             self._ref = acq
-            lam = acq.c0 / acq.probe.centre_frequency
-            # One track per fingerprint and expected target (cfg.n_peaks): a calibration describes one object.
-            self._tracker = (
-                Tracker(
-                    grid,
-                    lam,
-                    acq.probe.aperture[0],
-                    band[1] - band[0],
-                    acq.c0,
-                    TrackerConfig(max_tracks_per_map=max(1, cfg.n_peaks), integrate_frames=cfg.track_integrate),
-                )
-                if cfg.track
-                else None
-            )
+            self._tracker = make_tracker(grid, tracker_settings(acq, band, cfg)) if cfg.track else None
             pw = imager.plane_waves(acq)
             imager.kernel(pw)  # NUFFT plan (FFTW planning: seconds) before the first frame is timed
             for entry in self._entries.values():
@@ -513,4 +525,5 @@ class Pipeline:
             dets,
             tracks,
             {"spectrum_projection": t1 - t0, "gamma_kernel": t2 - t1, "detection": t3 - t2},
+            nulls,
         )

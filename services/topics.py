@@ -8,6 +8,8 @@ keys of one rig from it, so no node, test or benchmark writes a key by hand:
 * the acknowledgements that pace a replaying publisher: ``detections`` and ``errors`` (:attr:`Keys.acks`);
 * the dictionary queryable ``dictionary/**`` and its operations ``dictionary/{list,add/<name>,
   remove/<name>,set,<name>}`` (:meth:`Keys.dictionary_op`);
+* sharded processing (docs/scaling.md): ``@shard/assign/<worker>`` and ``@shard/result``, verbatim chunks
+  that ``**`` does not match (a recorder of ``fp/<rig>/**`` leaves them out);
 * liveliness tokens ``alive/<role>[/<name>]`` (:meth:`Keys.alive`; :meth:`Keys.alive_any` matches any
   name of a role);
 * ``**``: everything of the rig (what the recorder subscribes to); :data:`ALL_RIGS` is ``fp/**``.
@@ -45,6 +47,9 @@ TABLE: dict[str, Topic] = {
     "ingest": Topic("ingest", None, "untrusted RFFrame payloads from any program, validated by the publisher"),
     "dictionary": Topic("dictionary", None, "queryable of the processor's fingerprint dictionary"),
     "alive": Topic("alive", None, "liveliness tokens alive/<role>[/<name>]"),
+    # Sharded processing (docs/scaling.md): '@' chunks are verbatim, so ``fp/<rig>/**`` (a recorder) never sees them.
+    "shard_assign": Topic("@shard/assign", None, "merger → one γ worker: the frame index it computes (JSON)"),
+    "shard_result": Topic("@shard/result", None, "γ worker → merger: one frame's results (services.nodes.shard)"),
     "all": Topic("**", None, "everything of the rig"),
 }
 
@@ -137,6 +142,10 @@ class Keys:
     def alive_any(self, role: str) -> str:
         """Matches every token of a role on the rig, whatever the node's name: ``fp/<rig>/alive/<role>/**``."""
         return f"{self.alive(role)}/**"
+
+    def shard_assign_to(self, worker: str) -> str:
+        """Where the merger assigns frames to one γ worker: ``fp/<rig>/@shard/assign/<worker>``."""
+        return f"{self.topic('shard_assign')}/{_plain_path(worker, 'worker')}"
 
     def for_message(self, msg: Any) -> str:
         """Key a message (or message type) is published on."""

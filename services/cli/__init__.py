@@ -22,12 +22,14 @@ from services.cli.convert import add_convert_parser
 from services.cli.demo import add_demo_parser
 from services.cli.figure import add_figure_parser
 from services.cli.locate import add_locate_parser
+from services.cli.merge import add_merge_parser
 from services.cli.process import add_process_parser
 from services.cli.publish import add_publish_parser
 from services.cli.record import add_record_parser, add_recover_parser
 from services.cli.simulate import add_simulate_parser
 from services.cli.track import add_track_parser
 from services.cli.view import add_view_parser
+from services.cli.worker import add_worker_parser
 
 __all__ = ["build_parser", "main"]
 
@@ -59,6 +61,8 @@ def build_parser() -> argparse.ArgumentParser:
     # Streaming nodes (issue 4): each registers its subcommand and handler (docs/design.md §2, §7).
     add_publish_parser(sub)
     add_process_parser(sub)
+    add_worker_parser(sub)  # sharded processing: γ workers + merger (issue 15, docs/scaling.md)
+    add_merge_parser(sub)
     add_record_parser(sub)
     add_recover_parser(sub)
     # Recordings to Rerun / PNG (issue 6).

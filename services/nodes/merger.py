@@ -1,0 +1,344 @@
+"""Merger node (`fp merge`): the one ordered stage of a sharded processor (docs/scaling.md).
+
+From the outside the merger is the rig's processor: its liveliness token is
+``fp/<rig>/alive/processor/<name>`` (a publisher pacing on acknowledgements waits for it) and per frame it
+publishes, in frame order, exactly what ``services.nodes.processor`` publishes — ``image``, one ``gamma``
+per fingerprint, ``tracks``, then ``detections`` (the acknowledgement), or the frame's ErrorReport — plus
+a Status every second. The γ-maps are computed by γ workers (``services.nodes.worker``); the merger runs
+only the tracker (``services.pipeline.make_tracker``, fed each map's null model as the single node does).
+
+Shares. The merger reads every frame's index from the header attachment of ``fp/<rig>/rf`` (it never
+decodes the RF) and assigns each frame to one live worker on ``fp/<rig>/@shard/assign/<worker>`` —
+the least loaded, at most ``depth`` frames each, ties rotating with the frame index. Membership is the
+set of liveliness tokens ``fp/<rig>/alive/worker/*`` (zenoh reports a token's end when its session
+closes or its link times out), so shares re-balance by themselves as workers come and go. Every worker
+holds the frames it received, so:
+
+* a worker's token goes → the frames assigned to it and not returned go to the others (they hold them);
+* a worker answers ``miss`` (it does not hold the frame) → the frame goes to a worker that has not tried;
+  when every live worker has, the frame is reported lost with an ErrorReport on ``fp/<rig>/errors``
+  (field ``shard``), never silently;
+* a result that arrives twice (a worker thought dead came back) is published once (``duplicates``).
+
+Queue modes as the processor's: ``fifo`` (replay) keeps every frame until it is merged; ``newest`` (live)
+keeps only the newest frame waiting for a free worker and counts the others as ``dropped``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from fpcore.tracking import Tracker, TrackState
+from services.bus import sample_publish_time
+from services.convert import track
+from services.messages import ErrorReport, GammaMap, Latency, Status, Tracks
+from services.nodes.base import Node
+from services.nodes.worker import ShardResult, decode_shard
+from services.pipeline import make_tracker
+from services.wire import WireError, decode, decode_header, encode, error_report, extract_header
+
+__all__ = ["Merger", "MergerConfig"]
+
+log = logging.getLogger("fp.merger")
+
+
+@dataclass
+class MergerConfig:
+    """``depth``: frames in flight per worker (one computed, one waiting); ``min_workers``: the node announces
+    itself once that many workers are alive (or after ``wait_workers_s``)."""
+
+    rig: str = "demo"
+    name: str = "merger"
+    queue: str = "newest"  # "newest" (live) | "fifo" (replay)
+    depth: int = 2
+    min_workers: int = 1
+    wait_workers_s: float = 60.0
+    track: bool = True
+    status_period: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.queue not in ("newest", "fifo"):
+            raise ValueError(f"--queue: expected 'newest' or 'fifo', got {self.queue!r}")
+        if self.depth < 1:
+            raise ValueError(f"--depth: expected >= 1, got {self.depth}")
+        if self.min_workers < 0:
+            raise ValueError(f"--workers: expected >= 0, got {self.min_workers}")
+
+
+@dataclass
+class _Frame:
+    t_pub: float
+    worker: str | None = None
+    tried: set[str] = field(default_factory=set)
+    result: ShardResult | None = None
+
+
+class Merger(Node):
+    """The ordered stage on an open zenoh session: ``with Merger(session, cfg): ...`` (module doc)."""
+
+    role = "processor"
+
+    def __init__(self, session: zenoh.Session, config: MergerConfig) -> None:
+        super().__init__(session, config.rig, config.name)
+        self.cfg = config
+        self._cond = threading.Condition()
+        self._members: set[str] = set()
+        self._frames: dict[int, _Frame] = {}
+        self._merged: deque[int] = deque(maxlen=4096)
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._tracker: Tracker | None = None
+        self._tracker_key: Any = None
+        self.frames_processed = 0
+        self.dropped = 0
+        self.rejected = 0
+        self.reassigned = 0
+        self.lost = 0
+        self.duplicates = 0
+        self.per_worker: dict[str, int] = {}
+        self.dictionary: list[str] = []
+        self._latency: deque[float] = deque(maxlen=1000)
+        self._done_times: deque[float] = deque(maxlen=200)
+
+    # -- lifecycle ----------------------------------------------------------------------------------------
+    def _open(self) -> None:
+        self.declare_publishers("gamma", "image", "detections", "tracks", "status", "errors")
+        pre = self.keys.alive("worker") + "/"
+        self._pre = pre
+        self._subs = [
+            self.session.liveliness().declare_subscriber(f"{pre}*", self._on_token, history=True),
+            self.session.declare_subscriber(self.keys.topic("shard_result"), self._on_result),
+        ]
+        deadline = time.monotonic() + self.cfg.wait_workers_s
+        with self._cond:
+            while len(self._members) < self.cfg.min_workers and time.monotonic() < deadline:
+                self._cond.wait(0.1)
+            if len(self._members) < self.cfg.min_workers:
+                log.warning(
+                    "%d of %d workers after %.0f s; starting",
+                    len(self._members),
+                    self.cfg.min_workers,
+                    self.cfg.wait_workers_s,
+                )
+        self._threads = [
+            threading.Thread(target=self._emit_loop, name=f"{self.name}-merge", daemon=True),
+            threading.Thread(target=self._status_loop, name=f"{self.name}-status", daemon=True),
+        ]
+        for t in self._threads:
+            t.start()
+        self._subs.append(self.session.declare_subscriber(self.keys.rf, self._on_frame))
+
+    def _shutdown(self) -> None:
+        for s in self._subs:
+            s.undeclare()
+        self._stop.set()
+        with self._cond:
+            self._cond.notify_all()
+        for t in self._threads:
+            t.join(timeout=30)
+        try:
+            self._publish_status()
+        except Exception:
+            pass
+
+    @property
+    def workers(self) -> list[str]:
+        with self._cond:
+            return sorted(self._members)
+
+    def stats(self) -> dict[str, Any]:
+        lat = np.asarray(self._latency, float)
+        d = self._done_times
+        rate = (len(d) - 1) / (d[-1] - d[0]) if len(d) > 1 and d[-1] > d[0] else 0.0
+        return {
+            "frames_processed": self.frames_processed,
+            "dropped": self.dropped,
+            "rejected": self.rejected,
+            "reassigned": self.reassigned,
+            "lost": self.lost,
+            "duplicates": self.duplicates,
+            "per_worker": dict(self.per_worker),
+            "workers": self.workers,
+            "frame_rate_hz": rate,
+            "latency_ms": {
+                "median": float(np.median(lat)) if lat.size else None,
+                "p95": float(np.percentile(lat, 95)) if lat.size else None,
+            },
+        }
+
+    # -- membership, frames and results (zenoh callbacks: bookkeeping only) -------------------------------
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        name = str(sample.key_expr)[len(self._pre) :]
+        with self._cond:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._members.add(name)
+                log.info("worker %s joined (%d)", name, len(self._members))
+            else:
+                self._members.discard(name)
+                moved = [fi for fi, f in self._frames.items() if f.worker == name and f.result is None]
+                for fi in moved:
+                    self._frames[fi].worker = None
+                self.reassigned += len(moved)
+                log.warning("worker %s left (%d left); frames %s move to the others", name, len(self._members), moved)
+            self._dispatch()
+            self._cond.notify_all()
+
+    def _on_frame(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        att = sample.attachment
+        try:
+            raw = att.to_bytes() if att is not None else extract_header(sample.payload.to_bytes())
+            fi = decode_header(raw, strict=False).frame_index
+            if fi is None:
+                raise WireError("frame_index", "expected the frame index in the header, found none")
+        except WireError as exc:
+            self.rejected += 1
+            self.report(error_report(exc, key, None, node=self.name))
+            return
+        t_pub = sample_publish_time(sample) or time.time()
+        with self._cond:
+            if fi in self._frames or fi in self._merged:
+                return
+            self._frames[fi] = _Frame(t_pub)
+            self._dispatch()
+            if self.cfg.queue == "newest":  # keep only the newest frame that waits for a worker
+                waiting = sorted(i for i, f in self._frames.items() if f.worker is None and f.result is None)
+                for i in waiting[:-1]:
+                    del self._frames[i]
+                    self.dropped += 1
+            self._cond.notify_all()
+
+    def _on_result(self, sample: zenoh.Sample) -> None:
+        try:
+            res = decode_shard(sample.payload.to_bytes())
+        except ValueError as exc:
+            self.rejected += 1
+            self.report(ErrorReport(key=str(sample.key_expr), field="shard", problem=str(exc)[:2000], node=self.name))
+            return
+        with self._cond:
+            f = self._frames.get(res.frame_index)
+            if f is None or f.result is not None:
+                self.duplicates += int(res.kind != "miss" and (f is not None or res.frame_index in self._merged))
+                return
+            if res.kind == "miss":
+                f.tried.add(res.worker)
+                if f.worker == res.worker:
+                    f.worker = None
+                log.info("worker %s does not hold frame %s", res.worker, res.frame_index)
+            else:
+                f.result = res
+            self._dispatch()
+            self._cond.notify_all()
+
+    def _dispatch(self) -> None:
+        """Assign the waiting frames, oldest first (under the lock)."""
+        members = sorted(self._members)
+        if not members:
+            return
+        load = dict.fromkeys(members, 0)
+        for f in self._frames.values():
+            if f.worker in load and f.result is None:
+                load[f.worker] += 1
+        for fi in sorted(self._frames):
+            f = self._frames[fi]
+            if f.worker is not None or f.result is not None:
+                continue
+            untried = [w for w in members if w not in f.tried]
+            if not untried:  # every live worker said it does not hold the frame
+                self.lost += 1
+                problem = f"frame {fi}: no live γ worker holds it (tried {', '.join(sorted(f.tried))})"
+                rep = ErrorReport(frame_index=fi, key=self.keys.rf, field="shard", problem=problem, node=self.name)
+                f.result = ShardResult(fi, 0.0, self.name, "failed", [("errors", encode(rep))])
+                continue
+            free = [w for w in untried if load[w] < self.cfg.depth]
+            if not free:
+                continue
+            n = len(members)
+            w = min(free, key=lambda m: (load[m], (members.index(m) - fi) % n))
+            f.worker, load[w] = w, load[w] + 1
+            self.session.put(
+                self.keys.shard_assign_to(w),
+                json.dumps({"frame_index": fi}),
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+
+    # -- the ordered stage ----------------------------------------------------------------------------------
+    def _emit_loop(self) -> None:
+        while not self._stop.is_set():
+            with self._cond:
+                head = min(self._frames) if self._frames else None
+                f = self._frames.get(head) if head is not None else None
+                if f is None or f.result is None:
+                    self._cond.wait(0.2)
+                    continue
+                del self._frames[head]
+                self._merged.append(head)
+            try:
+                self._emit(f, f.result)
+            except Exception:  # the node never dies on one frame
+                log.exception("frame %s: merge failed", head)
+
+    def _emit(self, f: _Frame, res: ShardResult) -> None:
+        """Publish one frame as the processor does: [truth report,] image, γ-maps, tracks, detections (or the
+        frame's ErrorReport); the workers' payloads go out as they came."""
+        for topic, payload in res.messages:
+            if topic == "detections":
+                states = self._track(res, [p for t, p in res.messages if t == "gamma"]) if self.cfg.track else []
+                tracks = Tracks(frame_index=res.frame_index, timestamp=res.timestamp, tracks=[track(t) for t in states])
+                self.publish("tracks", tracks)
+                self._latency.append(max(time.time() - f.t_pub, 0.0) * 1e3)
+            self._pubs[topic].put(payload, attachment=extract_header(payload), timestamp=self.session.new_timestamp())
+        self.frames_processed += 1
+        self.per_worker[res.worker] = self.per_worker.get(res.worker, 0) + 1
+        self._done_times.append(time.monotonic())
+
+    def _track(self, res: ShardResult, gamma_payloads: list[bytes]) -> list[TrackState]:
+        """The single node's tracker step (``Pipeline.process``) on the worker's maps and null models; a new
+        tracker when the grid or the tracker's settings change (the pipeline's set-up does the same)."""
+        maps: dict[str, np.ndarray] = {}
+        for p in gamma_payloads:
+            g = decode(p, expect=GammaMap)
+            assert isinstance(g, GammaMap)
+            maps[g.fingerprint] = g.gamma
+        self.dictionary = list(maps)
+        grid = res.grid
+        if grid is None or not maps:
+            return []
+        ykey = None if grid.y is None else grid.y.tobytes()
+        key = (grid.x.tobytes(), ykey, grid.z.tobytes(), sorted(res.tracker.items()))
+        if self._tracker is None or key != self._tracker_key:
+            self._tracker, self._tracker_key = make_tracker(grid, res.tracker), key
+        return self._tracker.update(maps, res.timestamp, nulls=res.nulls)
+
+    # -- status -------------------------------------------------------------------------------------------------
+    def _publish_status(self) -> None:
+        st = self.stats()
+        lat = st["latency_ms"]
+        self.publish(
+            "status",
+            Status(
+                node=self.name,
+                frames_processed=self.frames_processed,
+                frame_rate_hz=st["frame_rate_hz"],
+                latency_ms=Latency(median=lat["median"], p95=lat["p95"]),
+                dropped=self.dropped,
+                rejected=self.rejected,
+                dictionary=self.dictionary,
+            ),
+        )
+
+    def _status_loop(self) -> None:
+        while not self._stop.wait(self.cfg.status_period):
+            try:
+                self._publish_status()
+            except Exception as exc:  # pragma: no cover
+                log.error("status: %s", exc)

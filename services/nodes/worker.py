@@ -1,0 +1,382 @@
+"""γ worker node (`fp worker`): one share of a rig's frames, computed for a merger (docs/scaling.md).
+
+A worker subscribes to ``fp/<rig>/rf`` like a processor, but computes only the frames the merger
+(``services.nodes.merger``) assigns to it on ``fp/<rig>/@shard/assign/<name>``: for each one, the
+single-node pipeline without its tracker (``services.pipeline.Pipeline`` with ``track=False``: band and
+output projection, confocal image, one γ-map per fingerprint, null models, detections), the wire
+messages the processor would publish (``services.convert.frame_messages``), and one shard result on
+``fp/<rig>/@shard/result``: those messages' FPWIRE01 payloads exactly as they will be published, each
+map's null model (the tracker's input, fpcore.cfar.NullModel) and the tracker's settings. The merger
+runs the one tracker in frame order and publishes.
+
+Every worker holds the last ``hold`` frames it received (zenoh's buffers, no copy until a frame is
+assigned), so a frame assigned again after its first worker died is computed by another one without
+being sent twice. A frame it does not hold (evicted, or never received) is answered with a ``miss``;
+a frame that fails (bad payload, processing error) with ``failed`` and its ErrorReport.
+
+The worker announces itself with the liveliness token ``fp/<rig>/alive/worker/<name>`` (declared last,
+after its subscriptions): the merger's membership, and the shares, follow the tokens.
+
+Shard result payload (``FPSHARD1``, internal: it never leaves ``@shard``): the FPWIRE01 layout — 8-byte
+magic, uint32 header length, uint32 flags 0, a UTF-8 JSON header, zero padding to a multiple of 64, then
+64-aligned raw little-endian buffers listed in the header's ``arrays`` ({name, dtype, shape, offset,
+nbytes}). No pickle.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+import socket
+import struct
+import threading
+import time
+from collections import OrderedDict, deque
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from fpcore.budget import BudgetError
+from fpcore.cfar import NullModel
+from fpcore.grid import Grid
+from services.convert import frame_messages
+from services.messages import ErrorReport, RFFrame
+from services.nodes.base import Node
+from services.pipeline import Pipeline, PipelineConfig, tracker_settings
+from services.registry import FingerprintSpec
+from services.runtime import limit_blas_threads
+from services.wire import DEFAULT_MAX_BYTES, WireError, decode, decode_header, encode, error_report
+
+__all__ = ["ShardResult", "Worker", "WorkerConfig", "decode_shard", "default_worker_name", "encode_shard"]
+
+log = logging.getLogger("fp.worker")
+SHARD_MAGIC = b"FPSHARD1"
+_PREFIX = struct.Struct("<8sII")
+_ALIGN = 64
+KINDS = ("result", "failed", "miss")
+
+
+def default_worker_name() -> str:
+    """``<host>-<pid>``: unique on the bus, and a plain key chunk."""
+    host = "".join(c if c.isalnum() or c in "_-." else "-" for c in socket.gethostname()) or "host"
+    return f"{host}-{os.getpid()}"
+
+
+# -- the shard result payload -----------------------------------------------------------------------
+@dataclass
+class ShardResult:
+    """One frame's results from a worker: ``messages`` are (topic, FPWIRE01 payload) in publish order."""
+
+    frame_index: int
+    timestamp: float
+    worker: str
+    kind: str = "result"  # result | failed (messages: the ErrorReport) | miss (no messages)
+    messages: list[tuple[str, bytes]] = dataclasses.field(default_factory=list)
+    nulls: dict[str, NullModel] = dataclasses.field(default_factory=dict)
+    tracker: dict[str, float] = dataclasses.field(default_factory=dict)
+    grid: Grid | None = None
+    compute_s: float = 0.0
+
+
+def encode_shard(res: ShardResult) -> bytes:
+    """The FPSHARD1 payload of ``res`` (module doc)."""
+    bufs: list[tuple[str, np.ndarray]] = []
+
+    def buf(name: str, arr: Any) -> str:
+        bufs.append((name, np.ascontiguousarray(arr)))
+        return name
+
+    grid = None
+    if res.grid is not None:
+        g = res.grid
+        grid = {a: None if getattr(g, a) is None else buf(f"grid.{a}", getattr(g, a)) for a in ("x", "y", "z")}
+    nulls: dict[str, dict[str, Any]] = {}
+    for name, nm in res.nulls.items():
+        fields: dict[str, Any] = {}
+        for f in dataclasses.fields(nm):
+            v = getattr(nm, f.name)
+            if f.name == "grid":
+                continue
+            if isinstance(v, np.ndarray):
+                fields[f.name] = {"buffer": buf(f"null.{len(nulls)}.{f.name}", v)}
+            elif isinstance(v, tuple):
+                fields[f.name] = {"tuple": [float(x) if isinstance(x, (float, np.floating)) else int(x) for x in v]}
+            else:
+                fields[f.name] = {"value": None if v is None else float(v)}
+        nulls[name] = fields
+    msgs = [[topic, buf(f"msg.{i}", np.frombuffer(p, np.uint8))] for i, (topic, p) in enumerate(res.messages)]
+    arrays, offset = [], 0
+    for name, a in bufs:
+        arrays.append(
+            {"name": name, "dtype": a.dtype.str, "shape": list(a.shape), "offset": offset, "nbytes": a.nbytes}
+        )
+        offset += -(-a.nbytes // _ALIGN) * _ALIGN
+    header = {
+        "frame_index": res.frame_index,
+        "timestamp": res.timestamp,
+        "worker": res.worker,
+        "kind": res.kind,
+        "compute_s": res.compute_s,
+        "tracker": res.tracker,
+        "grid": grid,
+        "nulls": nulls,
+        "messages": msgs,
+        "arrays": arrays,
+    }
+    hdr = json.dumps(header, separators=(",", ":")).encode()
+    start = -(-(_PREFIX.size + len(hdr)) // _ALIGN) * _ALIGN
+    parts = [_PREFIX.pack(SHARD_MAGIC, len(hdr), 0), hdr, bytes(start - _PREFIX.size - len(hdr))]
+    for (_, a), d in zip(bufs, arrays, strict=True):
+        parts.append(a.tobytes())
+        parts.append(bytes(-(-d["nbytes"] // _ALIGN) * _ALIGN - d["nbytes"]))
+    return b"".join(parts)
+
+
+def decode_shard(payload: bytes) -> ShardResult:
+    """Inverse of :func:`encode_shard`; ValueError (one line) on a malformed payload. Arrays are read-only views."""
+    try:
+        magic, n, flags = _PREFIX.unpack_from(payload, 0)
+        if magic != SHARD_MAGIC or flags != 0 or _PREFIX.size + n > len(payload):
+            raise ValueError("bad magic, flags or header length")
+        h = json.loads(payload[_PREFIX.size : _PREFIX.size + n])
+        start = -(-(_PREFIX.size + n) // _ALIGN) * _ALIGN
+        views: dict[str, np.ndarray] = {}
+        for d in h["arrays"]:
+            lo, hi = start + int(d["offset"]), start + int(d["offset"]) + int(d["nbytes"])
+            if hi > len(payload):
+                raise ValueError(f"buffer {d['name']!r} runs past the payload")
+            dt, count = np.dtype(d["dtype"]), int(np.prod(d["shape"], dtype=np.int64))
+            if count * dt.itemsize != hi - lo:
+                raise ValueError(f"buffer {d['name']!r}: shape and nbytes disagree")
+            views[d["name"]] = np.frombuffer(payload, dt, count=count, offset=lo).reshape(d["shape"])
+        grid = None
+        if h["grid"] is not None:
+            ax = {a: None if b is None else views[b] for a, b in h["grid"].items()}
+            grid = Grid(ax["x"], ax["z"], ax["y"])
+        nulls = {}
+        for name, fields in h["nulls"].items():
+            kw: dict[str, Any] = {}
+            for k, v in fields.items():
+                kw[k] = views[v["buffer"]] if "buffer" in v else tuple(v["tuple"]) if "tuple" in v else v["value"]
+            nulls[name] = NullModel(grid=grid, **kw)
+        messages = [(str(t), views[b].tobytes()) for t, b in h["messages"]]
+        kind = str(h["kind"])
+        if kind not in KINDS:
+            raise ValueError(f"kind {kind!r}")
+        return ShardResult(
+            int(h["frame_index"]),
+            float(h["timestamp"]),
+            str(h["worker"]),
+            kind,
+            messages,
+            nulls,
+            dict(h["tracker"]),
+            grid,
+            float(h.get("compute_s", 0.0)),
+        )
+    except (ValueError, KeyError, TypeError, struct.error) as exc:
+        raise ValueError(f"shard result: {exc}") from None
+
+
+# -- the node -----------------------------------------------------------------------------------------
+@dataclass
+class WorkerConfig(PipelineConfig):
+    """Worker settings on top of the processing settings (its pipeline never tracks: the merger does).
+
+    ``hold``: frames kept for a later assignment (at least the publisher's ack window); ``frame_wait_s``:
+    how long an assigned frame that has not arrived yet is waited for before a ``miss``."""
+
+    rig: str = "demo"
+    name: str = ""
+    hold: int = 16
+    frame_wait_s: float = 5.0
+    max_frame_bytes: int = DEFAULT_MAX_BYTES
+    blas_threads: int | None = 1
+
+    def __post_init__(self) -> None:
+        if self.hold < 1:
+            raise ValueError(f"--hold: expected >= 1, got {self.hold}")
+        self.name = self.name or default_worker_name()
+        super().__post_init__()
+
+
+class Worker(Node):
+    """A γ worker on an open zenoh session: ``with Worker(session, cfg, specs): ...`` (module doc)."""
+
+    role = "worker"
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        config: WorkerConfig,
+        fingerprints: list[FingerprintSpec] | tuple[FingerprintSpec, ...] = (),
+    ) -> None:
+        super().__init__(session, config.rig, config.name)
+        self.cfg = dataclasses.replace(config, track=False)
+        self.pipeline = Pipeline(self.cfg, fingerprints)
+        self._cond = threading.Condition()
+        self._held: OrderedDict[int, Any] = OrderedDict()  # frame index → zenoh payload (ZBytes)
+        self._assigned: deque[int] = deque()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.frames_computed = 0
+        self.failed = 0
+        self.misses = 0
+        self.received = 0
+
+    @property
+    def token_key(self) -> str:
+        return f"{self.keys.alive('worker')}/{self.name}"  # always …/alive/worker/<name>
+
+    def _open(self) -> None:
+        if self.cfg.blas_threads is not None:
+            try:
+                limit_blas_threads(self.cfg.blas_threads)
+            except OSError:
+                pass
+        self.declare_publishers("shard_result", "errors")
+        self._warmed, self._warm_error = threading.Event(), None
+        self._thread = threading.Thread(target=self._warm_then_work, name=f"{self.name}-work", daemon=True)
+        self._thread.start()
+        self._warmed.wait()
+        if self._warm_error is not None:
+            raise self._warm_error
+        self._subs = [
+            self.session.declare_subscriber(self.keys.rf, self._on_frame),
+            self.session.declare_subscriber(self.keys.shard_assign_to(self.name), self._on_assign),
+        ]
+
+    def _shutdown(self) -> None:
+        for s in self._subs:
+            s.undeclare()
+        self._stop.set()
+        with self._cond:
+            self._cond.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout=30)
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            "worker": self.name,
+            "received": self.received,
+            "computed": self.frames_computed,
+            "failed": self.failed,
+            "misses": self.misses,
+            "setup_s": self.pipeline.setup_s,
+        }
+
+    # -- input (zenoh callbacks: no copies, no work) ------------------------------------------------------
+    def _on_frame(self, sample: zenoh.Sample) -> None:
+        att = sample.attachment
+        try:
+            fi = decode_header(att.to_bytes() if att is not None else b"", strict=False).frame_index
+        except WireError:
+            fi = None  # the merger reports a frame it cannot index
+        if fi is None:
+            return
+        with self._cond:
+            self.received += 1
+            self._held[fi] = sample.payload
+            self._held.move_to_end(fi)
+            while len(self._held) > self.cfg.hold:
+                self._held.popitem(last=False)
+            self._cond.notify_all()
+
+    def _on_assign(self, sample: zenoh.Sample) -> None:
+        try:
+            fi = int(json.loads(sample.payload.to_bytes())["frame_index"])
+        except (ValueError, KeyError, TypeError) as exc:
+            log.warning("%s: unreadable assignment: %s", self.name, exc)
+            return
+        with self._cond:
+            self._assigned.append(fi)
+            self._cond.notify_all()
+
+    # -- work --------------------------------------------------------------------------------------------
+    def _warm_then_work(self) -> None:
+        try:
+            self.pipeline.warm_up()  # on this thread: its malloc arena keeps the frame buffers (processor.py)
+        except BaseException as exc:
+            self._warm_error = exc
+            return
+        finally:
+            self._warmed.set()
+        while not self._stop.is_set():
+            with self._cond:
+                if not self._assigned:
+                    self._cond.wait(0.2)
+                    continue
+                fi = self._assigned.popleft()
+                deadline = time.monotonic() + self.cfg.frame_wait_s
+                while fi not in self._held and not self._stop.is_set() and time.monotonic() < deadline:
+                    self._cond.wait(0.05)
+                payload = self._held.pop(fi, None)
+            if payload is None:
+                if self._stop.is_set():
+                    return
+                self.misses += 1
+                self._send(ShardResult(fi, 0.0, self.name, "miss"))
+                continue
+            self._send(self._compute(fi, payload))
+
+    def _compute(self, fi: int, payload: Any) -> ShardResult:
+        t0 = time.perf_counter()
+        key = self.keys.rf
+        raw = payload.to_bytes()
+        try:
+            msg = decode(raw, max_bytes=self.cfg.max_frame_bytes, expect=RFFrame)
+        except WireError as exc:
+            self.failed += 1
+            rep = error_report(exc, key, raw, node=self.name)
+            return ShardResult(fi, 0.0, self.name, "failed", [("errors", encode(rep))])
+        assert isinstance(msg, RFFrame)
+        pre: list[tuple[str, bytes]] = []
+        if msg.truth_problem:  # processed without its truth, as the processor does
+            problem = f"{msg.truth_problem}; the truth was dropped and the frame processed without it"[:2000]
+            rep = ErrorReport(frame_index=fi, key=key, field="truth", problem=problem, node=self.name)
+            pre.append(("errors", encode(rep)))
+        try:
+            res = self.pipeline.process(msg.to_acquisition())
+        except Exception as exc:  # reported in frame order by the merger, like the processor's failures
+            self.failed += 1
+            log.exception("frame %s failed", fi)
+            field_ = (
+                "budget"
+                if isinstance(exc, BudgetError)
+                else "geometry"
+                if isinstance(exc, ValueError)
+                else "processing"
+            )
+            rep = ErrorReport(
+                frame_index=fi, key=key, field=field_, problem=f"{type(exc).__name__}: {exc}"[:2000], node=self.name
+            )
+            return ShardResult(fi, msg.timestamp, self.name, "failed", [*pre, ("errors", encode(rep))])
+        out = frame_messages(res, fi, msg.timestamp)
+        msgs = list(pre)
+        if out["image"] is not None:
+            msgs.append(("image", encode(out["image"])))
+        msgs.extend(("gamma", encode(g)) for g in out["gamma"])
+        msgs.append(("detections", encode(out["detections"])))
+        self.frames_computed += 1
+        return ShardResult(
+            fi,
+            msg.timestamp,
+            self.name,
+            "result",
+            msgs,
+            res.nulls,
+            tracker_settings(res.acq, res.band, self.pipeline.cfg),
+            res.grid,
+            time.perf_counter() - t0,
+        )
+
+    def _send(self, res: ShardResult) -> None:
+        try:
+            payload = encode_shard(res)
+            self._pubs["shard_result"].put(payload, timestamp=self.session.new_timestamp())
+        except Exception as exc:  # pragma: no cover - only when the session is going down
+            log.error("%s: could not send frame %s: %s", self.name, res.frame_index, exc)

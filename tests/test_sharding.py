@@ -1,0 +1,165 @@
+"""Sharded processing over real zenoh on loopback (issue 15.1; docs/scaling.md).
+
+`fp merge` runs as the zenoh router (tcp/127.0.0.1, scouting off), two `fp worker` subprocesses connect
+to it as clients, and a replaying publisher (paced by acknowledgements) sends small 2-D Born frames from
+the test process. One worker is killed by its pid (SIGKILL) while frames are in flight: every frame is
+still merged exactly once, and the detections and tracks equal the single-node pipeline's on the same
+frames. Processes are stopped by pid in ``finally``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from fpcore.io import write_uff
+from services.bus import BusConfig, free_port, open_session, wait_for_token
+from services.convert import frame_messages
+from services.messages import Detections, Tracks
+from services.nodes.publisher import Publisher
+from services.nodes.worker import ShardResult, decode_shard, encode_shard
+from services.pipeline import Pipeline, PipelineConfig
+from services.registry import FingerprintSpec
+from services.sources import AcquisitionSource, born_frames
+from services.topics import keys
+from tests.test_streaming import GRID, Collector, Node
+
+N_FRAMES = 16
+CONFIG: dict[str, Any] = {"x_range": (-5e-3, 5e-3), "z_range": (10e-3, 22e-3), "spacing": 0.25e-3, "n_freq": 24}
+
+
+def _client(port: int) -> BusConfig:
+    return BusConfig(mode="client", listen=None, connect=[f"tcp/127.0.0.1:{port}"])
+
+
+def _single_node(frames: list, cal: Any) -> dict[int, dict[str, Any]]:
+    """What `fp process` publishes per frame: its own pipeline, in-process."""
+    pipe = Pipeline(PipelineConfig(**CONFIG), [FingerprintSpec("marker", calibration=cal)])
+    out = {}
+    for i, acq in enumerate(frames):
+        msgs = frame_messages(pipe.process(acq), i, acq.timestamp)
+        out[i] = {"detections": msgs["detections"], "tracks": msgs["tracks"]}
+    return out
+
+
+def _same_detections(a: Detections, b: Detections) -> bool:
+    """Equal up to the NUFFT's multithreaded summation order (≈ 1e-7 relative)."""
+    return len(a.detections) == len(b.detections) and all(
+        x.fingerprint == y.fingerprint
+        and np.allclose(x.position_m, y.position_m, rtol=0, atol=1e-8)
+        and np.isclose(x.gamma_max, y.gamma_max, rtol=1e-4)
+        and np.isclose(x.pfa, y.pfa, rtol=1e-2, atol=1e-30)
+        for x, y in zip(a.detections, b.detections, strict=True)
+    )
+
+
+def _same_tracks(a: Tracks, b: Tracks) -> bool:
+    return len(a.tracks) == len(b.tracks) and all(
+        (x.id, x.fingerprint, x.status, x.age) == (y.id, y.fingerprint, y.status, y.age)
+        and np.allclose(x.position_m, y.position_m, rtol=0, atol=1e-8)
+        and np.allclose(x.velocity_m_s, y.velocity_m_s, rtol=0, atol=1e-6)
+        and np.allclose(x.covariance, y.covariance, rtol=1e-4, atol=1e-14)
+        and np.isclose(x.confidence, y.confidence, rtol=1e-6)
+        for x, y in zip(a.tracks, b.tracks, strict=True)
+    )
+
+
+def test_shard_payload_round_trip() -> None:
+    """FPSHARD1: messages, null models (every field) and the grid come back as they went."""
+    frames, cal = born_frames(1)
+    pipe = Pipeline(PipelineConfig(**CONFIG, track=False), [FingerprintSpec("marker", calibration=cal)])
+    res = pipe.process(frames[0])
+    msgs = frame_messages(res, 0, frames[0].timestamp)
+    from services.wire import encode
+
+    sent = ShardResult(
+        0, 0.5, "w-1", "result", [("detections", encode(msgs["detections"]))], res.nulls, {"c0": 1540.0}, res.grid
+    )
+    back = decode_shard(encode_shard(sent))
+    assert (back.frame_index, back.timestamp, back.worker, back.kind, back.tracker) == (
+        0,
+        0.5,
+        "w-1",
+        "result",
+        {"c0": 1540.0},
+    )
+    assert back.messages == sent.messages
+    assert back.grid is not None and np.array_equal(back.grid.x, res.grid.x) and back.grid.y is None
+    nm, nm2 = res.nulls["marker"], back.nulls["marker"]
+    assert np.array_equal(nm.significance, nm2.significance) and np.array_equal(nm.visible, nm2.visible)
+    assert nm.tail_fit == nm2.tail_fit and nm.guard_nodes == nm2.guard_nodes
+    assert nm.gate_pfa(5.0, np.array([3.0, 3.0])) == nm2.gate_pfa(5.0, np.array([3.0, 3.0]))
+    with pytest.raises(ValueError, match="shard result"):
+        decode_shard(b"FPSHARD1" + bytes(8))
+
+
+@pytest.mark.timeout(120)
+def test_worker_killed_mid_run_nothing_lost_tracks_identical(tmp_path: Path) -> None:
+    frames, cal = born_frames(N_FRAMES)
+    cal_path = tmp_path / "cal.uff"
+    write_uff(cal_path, cal)
+    rig, port = "shard", free_port()
+    hub = f"tcp/127.0.0.1:{port}"
+    client = ["--mode", "client", "--connect", hub]
+    wargs = ["worker", "--rig", rig, "--calibration", str(cal_path), *GRID, "--n-freq", "24", "--hold", "32"]
+    procs: list[Node] = []
+    try:
+        merger = Node(
+            ["merge", "--rig", rig, "--queue", "fifo", "--workers", "2", "--mode", "router", "--listen", hub],
+            tmp_path / "merge.log",
+        )
+        procs.append(merger)
+        workers = [Node([*wargs, "--name", f"w{i}", *client], tmp_path / f"w{i}.log") for i in range(2)]
+        procs += workers
+        reference = _single_node(frames, cal)  # while the nodes start
+        for w in workers:
+            w.wait_ready()
+        merger.wait_ready()
+        killed = threading.Event()
+
+        def kill_one(item: Any, t: float) -> None:  # a worker dies with frames in flight
+            if item.frame_index == N_FRAMES // 2 and not killed.is_set():
+                os.kill(workers[1].pid, signal.SIGKILL)
+                killed.set()
+
+        with open_session(_client(port)) as s:
+            assert wait_for_token(s, keys(rig).alive("worker") + "/w1", 10)
+            col = Collector(s, rig)
+            pub = Publisher(
+                s, rig, AcquisitionSource(frames), pace="ack", window=4, wait_timeout=30, on_publish=kill_one
+            )
+            summary = pub.run()
+            k = keys(rig)
+            dets = col.wait(k.detections, N_FRAMES)
+            tracks = col.wait(k.tracks, N_FRAMES)
+            errors = col.on(k.errors)
+            col.close()
+        os.kill(merger.pid, signal.SIGTERM)
+        out, _ = merger.proc.communicate(timeout=30)
+        stats = json.loads([ln for ln in out.splitlines() if '"stopped"' in ln][-1])
+        assert killed.is_set() and workers[1].proc.wait(5) == -signal.SIGKILL
+        assert summary["published"] == N_FRAMES and summary["acked"] == N_FRAMES and summary["ack_timeouts"] == 0
+        assert errors == []
+        # exactly once, in frame order
+        assert [d.frame_index for d in dets] == list(range(N_FRAMES))
+        assert [t.frame_index for t in tracks] == list(range(N_FRAMES))
+        for d in dets:
+            assert _same_detections(d, reference[d.frame_index]["detections"]), d.frame_index
+        for t in tracks:
+            assert _same_tracks(t, reference[t.frame_index]["tracks"]), t.frame_index
+        assert any(t.tracks and t.tracks[0].status == "confirmed" for t in tracks)
+        # w1 merged frames before it died, its frames in flight went to w0; nothing lost, nothing twice
+        assert stats["frames_processed"] == N_FRAMES and stats["lost"] == 0 and stats["duplicates"] == 0
+        assert stats["per_worker"]["w1"] >= 1 and stats["per_worker"]["w0"] + stats["per_worker"]["w1"] == N_FRAMES
+        assert stats["reassigned"] >= 1 and stats["workers"] == ["w0"]
+        assert "worker w1 left" in (tmp_path / "merge.log").read_text()
+    finally:
+        for p in procs:
+            p.stop()
