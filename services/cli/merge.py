@@ -54,7 +54,7 @@ def add_merge_parser(sub: argparse._SubParsersAction) -> None:
         type=number_in(0, 1e9, lo_open=False),
         help="stop after this many seconds (default: until signalled)",
     )
-    add_bus_arguments(p, listen="tcp/127.0.0.1:7447", connect=None)
+    add_bus_arguments(p, listen="tcp/127.0.0.1:7447", connect=None, warm_shm=True)  # forwards frames: SHM pool at start
     p.set_defaults(func=run_merge)
 
 

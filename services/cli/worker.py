@@ -13,7 +13,6 @@ import json
 import logging
 
 from services.bus import bus_from_args, open_session, stop_on_signals, tune_malloc, wait_until
-from services.cli.imaging import int_at_least, number_in
 from services.cli.process import add_process_parser, config_from_args, specs_from_args
 from services.nodes.worker import Worker, WorkerConfig
 
@@ -47,18 +46,6 @@ def add_worker_parser(sub: argparse._SubParsersAction) -> None:
         default="frame",
         help="what a worker's share is: whole frames (the only share so far; docs/scaling.md)",
     )
-    node.add_argument(
-        "--hold",
-        type=int_at_least(1),
-        default=16,
-        help="frames kept for a later assignment, at least the publisher's --window (default 16)",
-    )
-    node.add_argument(
-        "--frame-wait",
-        type=number_in(0, 3600),
-        default=5.0,
-        help="seconds an assigned frame that has not arrived is waited for (default 5)",
-    )
     p.set_defaults(func=run_worker, name=None, _bus_listen="tcp/127.0.0.1:0", _bus_connect="tcp/127.0.0.1:7447")
 
 
@@ -69,7 +56,7 @@ def run_worker(args: argparse.Namespace) -> int:
     args.queue, args.fifo_depth, args.status_period, args.no_track = "fifo", 1, 1.0, True
     pc = config_from_args(args)
     fields = {k: getattr(pc, k) for k in WorkerConfig.__dataclass_fields__ if hasattr(pc, k) and k != "name"}
-    cfg = WorkerConfig(**fields, name=args.name or "", hold=args.hold, frame_wait_s=args.frame_wait)
+    cfg = WorkerConfig(**fields, name=args.name or "")
     specs = specs_from_args(args)
     stop = stop_on_signals()
     with open_session(bus) as session:

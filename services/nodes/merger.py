@@ -7,17 +7,16 @@ per fingerprint, ``tracks``, then ``detections`` (the acknowledgement), or the f
 a Status every second. The γ-maps are computed by γ workers (``services.nodes.worker``); the merger runs
 only the tracker (``services.pipeline.make_tracker``, fed each map's null model as the single node does).
 
-Shares. The merger reads every frame's index from the header attachment of ``fp/<rig>/rf`` (it never
-decodes the RF) and assigns each frame to one live worker on ``fp/<rig>/@shard/assign/<worker>`` —
-the least loaded, at most ``depth`` frames each, ties rotating with the frame index. Membership is the
-set of liveliness tokens ``fp/<rig>/alive/worker/*`` (zenoh reports a token's end when its session
-closes or its link times out), so shares re-balance by themselves as workers come and go. Every worker
-holds the frames it received, so:
+Shares. The merger receives every frame on ``fp/<rig>/rf`` (it reads only the header attachment; it is
+usually the deployment's router, so the frame is in its process anyway) and forwards it, as it came, to
+one live worker on ``fp/<rig>/@shard/assign/<worker>`` — the least loaded, at most ``depth`` frames each,
+ties rotating with the frame index — so each frame crosses the network once more, to one worker.
+Membership is the set of liveliness tokens ``fp/<rig>/alive/worker/*`` (zenoh ends a token when its
+session closes, its process dies or its link's lease expires), so shares re-balance by themselves as
+workers come and go. The merger keeps each frame (zenoh's buffer, no copy) until its result is merged:
 
-* a worker's token goes → the frames assigned to it and not returned go to the others (they hold them);
-* a worker answers ``miss`` (it does not hold the frame) → the frame goes to a worker that has not tried;
-  when every live worker has, the frame is reported lost with an ErrorReport on ``fp/<rig>/errors``
-  (field ``shard``), never silently;
+* a worker's token goes → the frames it had and did not return are sent to the others at once;
+* no worker alive → frames wait (``fifo``) until one comes;
 * a result that arrives twice (a worker thought dead came back) is published once (``duplicates``).
 
 Queue modes as the processor's: ``fifo`` (replay) keeps every frame until it is merged; ``newest`` (live)
@@ -26,12 +25,11 @@ keeps only the newest frame waiting for a free worker and counts the others as `
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -44,7 +42,7 @@ from services.messages import ErrorReport, GammaMap, Latency, Status, Tracks
 from services.nodes.base import Node
 from services.nodes.worker import ShardResult, decode_shard
 from services.pipeline import make_tracker
-from services.wire import WireError, decode, decode_header, encode, error_report, extract_header
+from services.wire import WireError, decode, decode_header, error_report, extract_header
 
 __all__ = ["Merger", "MergerConfig"]
 
@@ -77,8 +75,10 @@ class MergerConfig:
 @dataclass
 class _Frame:
     t_pub: float
+    payload: Any  # the RFFrame payload as zenoh delivered it (ZBytes), until the frame's result is in
+    header: bytes
     worker: str | None = None
-    tried: set[str] = field(default_factory=set)
+    sent: int = 0  # times it was forwarded to a worker
     result: ShardResult | None = None
 
 
@@ -102,7 +102,6 @@ class Merger(Node):
         self.dropped = 0
         self.rejected = 0
         self.reassigned = 0
-        self.lost = 0
         self.duplicates = 0
         self.per_worker: dict[str, int] = {}
         self.dictionary: list[str] = []
@@ -164,7 +163,6 @@ class Merger(Node):
             "dropped": self.dropped,
             "rejected": self.rejected,
             "reassigned": self.reassigned,
-            "lost": self.lost,
             "duplicates": self.duplicates,
             "per_worker": dict(self.per_worker),
             "workers": self.workers,
@@ -208,7 +206,7 @@ class Merger(Node):
         with self._cond:
             if fi in self._frames or fi in self._merged:
                 return
-            self._frames[fi] = _Frame(t_pub)
+            self._frames[fi] = _Frame(t_pub, sample.payload, raw)
             self._dispatch()
             if self.cfg.queue == "newest":  # keep only the newest frame that waits for a worker
                 waiting = sorted(i for i, f in self._frames.items() if f.worker is None and f.result is None)
@@ -227,20 +225,14 @@ class Merger(Node):
         with self._cond:
             f = self._frames.get(res.frame_index)
             if f is None or f.result is not None:
-                self.duplicates += int(res.kind != "miss" and (f is not None or res.frame_index in self._merged))
+                self.duplicates += 1
                 return
-            if res.kind == "miss":
-                f.tried.add(res.worker)
-                if f.worker == res.worker:
-                    f.worker = None
-                log.info("worker %s does not hold frame %s", res.worker, res.frame_index)
-            else:
-                f.result = res
+            f.result, f.payload = res, None
             self._dispatch()
             self._cond.notify_all()
 
     def _dispatch(self) -> None:
-        """Assign the waiting frames, oldest first (under the lock)."""
+        """Forward the waiting frames, oldest first, to the least loaded live workers (under the lock)."""
         members = sorted(self._members)
         if not members:
             return
@@ -248,26 +240,21 @@ class Merger(Node):
         for f in self._frames.values():
             if f.worker in load and f.result is None:
                 load[f.worker] += 1
+        n = len(members)
         for fi in sorted(self._frames):
             f = self._frames[fi]
             if f.worker is not None or f.result is not None:
                 continue
-            untried = [w for w in members if w not in f.tried]
-            if not untried:  # every live worker said it does not hold the frame
-                self.lost += 1
-                problem = f"frame {fi}: no live γ worker holds it (tried {', '.join(sorted(f.tried))})"
-                rep = ErrorReport(frame_index=fi, key=self.keys.rf, field="shard", problem=problem, node=self.name)
-                f.result = ShardResult(fi, 0.0, self.name, "failed", [("errors", encode(rep))])
-                continue
-            free = [w for w in untried if load[w] < self.cfg.depth]
+            free = [w for w in members if load[w] < self.cfg.depth]
             if not free:
-                continue
-            n = len(members)
+                return
             w = min(free, key=lambda m: (load[m], (members.index(m) - fi) % n))
             f.worker, load[w] = w, load[w] + 1
+            f.sent += 1
             self.session.put(
                 self.keys.shard_assign_to(w),
-                json.dumps({"frame_index": fi}),
+                f.payload,
+                attachment=f.header,
                 congestion_control=zenoh.CongestionControl.BLOCK,
             )
 

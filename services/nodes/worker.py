@@ -1,21 +1,17 @@
 """γ worker node (`fp worker`): one share of a rig's frames, computed for a merger (docs/scaling.md).
 
-A worker subscribes to ``fp/<rig>/rf`` like a processor, but computes only the frames the merger
-(``services.nodes.merger``) assigns to it on ``fp/<rig>/@shard/assign/<name>``: for each one, the
-single-node pipeline without its tracker (``services.pipeline.Pipeline`` with ``track=False``: band and
-output projection, confocal image, one γ-map per fingerprint, null models, detections), the wire
-messages the processor would publish (``services.convert.frame_messages``), and one shard result on
-``fp/<rig>/@shard/result``: those messages' FPWIRE01 payloads exactly as they will be published, each
-map's null model (the tracker's input, fpcore.cfar.NullModel) and the tracker's settings. The merger
-runs the one tracker in frame order and publishes.
-
-Every worker holds the last ``hold`` frames it received (zenoh's buffers, no copy until a frame is
-assigned), so a frame assigned again after its first worker died is computed by another one without
-being sent twice. A frame it does not hold (evicted, or never received) is answered with a ``miss``;
-a frame that fails (bad payload, processing error) with ``failed`` and its ErrorReport.
+The merger (``services.nodes.merger``) receives the rig's frames on ``fp/<rig>/rf`` and forwards each one,
+as it came (payload and header attachment), to one worker on ``fp/<rig>/@shard/assign/<name>``. For each
+frame the worker runs the single-node pipeline without its tracker (``services.pipeline.Pipeline`` with
+``track=False``: band and output projection, confocal image, one γ-map per fingerprint, null models,
+detections), builds the wire messages the processor would publish (``services.convert.frame_messages``)
+and sends one shard result on ``fp/<rig>/@shard/result``: those messages' FPWIRE01 payloads exactly as
+they will be published, each map's null model (the tracker's input, fpcore.cfar.NullModel) and the
+tracker's settings. A frame that fails (bad payload, processing error) is answered ``failed`` with its
+ErrorReport. The merger runs the one tracker in frame order and publishes.
 
 The worker announces itself with the liveliness token ``fp/<rig>/alive/worker/<name>`` (declared last,
-after its subscriptions): the merger's membership, and the shares, follow the tokens.
+after its subscription): the merger's membership, and the shares, follow the tokens.
 
 Shard result payload (``FPSHARD1``, internal: it never leaves ``@shard``): the FPWIRE01 layout — 8-byte
 magic, uint32 header length, uint32 flags 0, a UTF-8 JSON header, zero padding to a multiple of 64, then
@@ -33,7 +29,7 @@ import socket
 import struct
 import threading
 import time
-from collections import OrderedDict, deque
+from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -57,7 +53,7 @@ log = logging.getLogger("fp.worker")
 SHARD_MAGIC = b"FPSHARD1"
 _PREFIX = struct.Struct("<8sII")
 _ALIGN = 64
-KINDS = ("result", "failed", "miss")
+KINDS = ("result", "failed")
 
 
 def default_worker_name() -> str:
@@ -74,7 +70,7 @@ class ShardResult:
     frame_index: int
     timestamp: float
     worker: str
-    kind: str = "result"  # result | failed (messages: the ErrorReport) | miss (no messages)
+    kind: str = "result"  # result | failed (messages: the ErrorReport)
     messages: list[tuple[str, bytes]] = dataclasses.field(default_factory=list)
     nulls: dict[str, NullModel] = dataclasses.field(default_factory=dict)
     tracker: dict[str, float] = dataclasses.field(default_factory=dict)
@@ -185,21 +181,14 @@ def decode_shard(payload: bytes) -> ShardResult:
 # -- the node -----------------------------------------------------------------------------------------
 @dataclass
 class WorkerConfig(PipelineConfig):
-    """Worker settings on top of the processing settings (its pipeline never tracks: the merger does).
-
-    ``hold``: frames kept for a later assignment (at least the publisher's ack window); ``frame_wait_s``:
-    how long an assigned frame that has not arrived yet is waited for before a ``miss``."""
+    """Worker settings on top of the processing settings (its pipeline never tracks: the merger does)."""
 
     rig: str = "demo"
     name: str = ""
-    hold: int = 16
-    frame_wait_s: float = 5.0
     max_frame_bytes: int = DEFAULT_MAX_BYTES
     blas_threads: int | None = 1
 
     def __post_init__(self) -> None:
-        if self.hold < 1:
-            raise ValueError(f"--hold: expected >= 1, got {self.hold}")
         self.name = self.name or default_worker_name()
         super().__post_init__()
 
@@ -219,13 +208,11 @@ class Worker(Node):
         self.cfg = dataclasses.replace(config, track=False)
         self.pipeline = Pipeline(self.cfg, fingerprints)
         self._cond = threading.Condition()
-        self._held: OrderedDict[int, Any] = OrderedDict()  # frame index → zenoh payload (ZBytes)
-        self._assigned: deque[int] = deque()
+        self._assigned: deque[tuple[int, Any]] = deque()  # (frame index, zenoh payload)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.frames_computed = 0
         self.failed = 0
-        self.misses = 0
         self.received = 0
 
     @property
@@ -245,10 +232,7 @@ class Worker(Node):
         self._warmed.wait()
         if self._warm_error is not None:
             raise self._warm_error
-        self._subs = [
-            self.session.declare_subscriber(self.keys.rf, self._on_frame),
-            self.session.declare_subscriber(self.keys.shard_assign_to(self.name), self._on_assign),
-        ]
+        self._subs = [self.session.declare_subscriber(self.keys.shard_assign_to(self.name), self._on_assign)]
 
     def _shutdown(self) -> None:
         for s in self._subs:
@@ -265,35 +249,22 @@ class Worker(Node):
             "received": self.received,
             "computed": self.frames_computed,
             "failed": self.failed,
-            "misses": self.misses,
             "setup_s": self.pipeline.setup_s,
         }
 
-    # -- input (zenoh callbacks: no copies, no work) ------------------------------------------------------
-    def _on_frame(self, sample: zenoh.Sample) -> None:
+    # -- input (a zenoh callback: no copy, no work) --------------------------------------------------------
+    def _on_assign(self, sample: zenoh.Sample) -> None:
         att = sample.attachment
         try:
             fi = decode_header(att.to_bytes() if att is not None else b"", strict=False).frame_index
         except WireError:
-            fi = None  # the merger reports a frame it cannot index
-        if fi is None:
+            fi = None
+        if fi is None:  # the merger forwards only frames it could index
+            log.warning("%s: a frame without its index; ignored", self.name)
             return
         with self._cond:
             self.received += 1
-            self._held[fi] = sample.payload
-            self._held.move_to_end(fi)
-            while len(self._held) > self.cfg.hold:
-                self._held.popitem(last=False)
-            self._cond.notify_all()
-
-    def _on_assign(self, sample: zenoh.Sample) -> None:
-        try:
-            fi = int(json.loads(sample.payload.to_bytes())["frame_index"])
-        except (ValueError, KeyError, TypeError) as exc:
-            log.warning("%s: unreadable assignment: %s", self.name, exc)
-            return
-        with self._cond:
-            self._assigned.append(fi)
+            self._assigned.append((fi, sample.payload))
             self._cond.notify_all()
 
     # -- work --------------------------------------------------------------------------------------------
@@ -310,17 +281,7 @@ class Worker(Node):
                 if not self._assigned:
                     self._cond.wait(0.2)
                     continue
-                fi = self._assigned.popleft()
-                deadline = time.monotonic() + self.cfg.frame_wait_s
-                while fi not in self._held and not self._stop.is_set() and time.monotonic() < deadline:
-                    self._cond.wait(0.05)
-                payload = self._held.pop(fi, None)
-            if payload is None:
-                if self._stop.is_set():
-                    return
-                self.misses += 1
-                self._send(ShardResult(fi, 0.0, self.name, "miss"))
-                continue
+                fi, payload = self._assigned.popleft()
             self._send(self._compute(fi, payload))
 
     def _compute(self, fi: int, payload: Any) -> ShardResult:
