@@ -9,8 +9,9 @@ Frames: the quick 3-D sinking-sphere scenario (cached by bench/bench_streaming.p
 its grid (x −9…−1 mm, y ±4 mm, z 18–30 mm) and 40 frequencies; a few distinct frames are cycled with new
 indices and timestamps. The single node is `fp process --mode router`; a sharded run is
 `fp merge --mode router` with its workers as zenoh clients. The publisher (this process, a client) paces
-on acknowledgements with 2 frames in flight per worker (``--window``). Each worker's kernel threads:
-FP_THREADS = max(1, CPUs // workers). The first ``--warmup`` frames are left out of the figures.
+on acknowledgements with 2 frames in flight per worker. Each worker's kernel threads: FP_THREADS =
+max(1, CPUs // workers). The first (``--warmup`` + 2) × workers frames (each worker's first frames and the
+frames queued behind them) are left out of the figures; CPU time per frame is counted over the others.
 """
 
 from __future__ import annotations
@@ -93,7 +94,8 @@ def run(label: str, n_workers: int, frames: list, cal: Path, args: argparse.Name
     """One configuration: its nodes, the frames through them, what came back."""
     rig, port = f"scale{n_workers}", free_port()
     hub = f"tcp/127.0.0.1:{port}"
-    warmup = args.warmup * max(1, n_workers)  # every worker's first frames
+    # every worker's first frames, and the window of frames queued behind them
+    warmup = (args.warmup + 2) * max(1, n_workers)
     total = warmup + args.frames
     fp_args = ["--rig", rig, "--calibration", str(cal), *GRID]
     procs: list[Proc] = []
@@ -130,10 +132,13 @@ def run(label: str, n_workers: int, frames: list, cal: Path, args: argparse.Name
                 got[topic][msg.frame_index] = msg
                 if topic == "detections":
                     recv[msg.frame_index] = time.time()
+                    if msg.frame_index == warmup - 1:  # CPU counted from here: the measured frames only
+                        cpu0[:] = [p.cpu_s() for p in procs]
+                        own0[0] = sum(os.times()[:2])
 
         window = 2 * max(1, n_workers)
-        cpu0 = [p.cpu_s() for p in procs]
-        own0 = sum(os.times()[:2])
+        cpu0 = [float("nan")] * len(procs)
+        own0 = [float("nan")]
         with open_session(BusConfig(mode="client", listen=None, connect=[hub], shm=args.shm)) as s:
             subs = [s.declare_subscriber(k.detections, on), s.declare_subscriber(k.tracks, on)]
             pub = Publisher(
@@ -153,7 +158,7 @@ def run(label: str, n_workers: int, frames: list, cal: Path, args: argparse.Name
             for sub in subs:
                 sub.undeclare()
         cpu = [p.cpu_s() - c for p, c in zip(procs, cpu0, strict=True)]
-        own = sum(os.times()[:2]) - own0
+        own = sum(os.times()[:2]) - own0[0]
     finally:
         stats = [p.stop() for p in procs]
     meas = [i for i in sorted(recv) if i >= warmup]
@@ -174,10 +179,11 @@ def run(label: str, n_workers: int, frames: list, cal: Path, args: argparse.Name
         "head_stats": stats[-1],
         # CPU ms per frame: the publisher (this process), the head node (processor or merger + router), workers
         "cpu_ms": {
-            "publisher": 1e3 * own / total,
-            "head": 1e3 * cpu[-1] / total,
-            "workers": 1e3 * sum(cpu[:-1]) / total,
+            "publisher": 1e3 * own / len(meas),
+            "head": 1e3 * cpu[-1] / len(meas),
+            "workers": 1e3 * sum(cpu[:-1]) / len(meas),
         },
+        "latency_ms": {i: round(1e3 * (recv[i] - sent[i]), 1) for i in meas},
     }
 
 
@@ -251,7 +257,7 @@ def main() -> int:
             f"| {r['label']} | {r['rate_hz']:.1f} | {ratio:.2f} | {r['p50_ms']:.0f} | {r['p95_ms']:.0f} | "
             f"{c['publisher']:.0f}, {c['head']:.0f}, {c['workers']:.0f} | {cell} |"
         )
-        keep = ("label", "workers", "window", "frames", "rate_hz", "p50_ms", "p95_ms", "cpu_ms")
+        keep = ("label", "workers", "window", "frames", "rate_hz", "p50_ms", "p95_ms", "cpu_ms", "latency_ms")
         table.append({k: r[k] for k in keep} | {"ratio": ratio, "same": same, "max_delta_m": worst})
     print(
         f"\nMachine: {cpus} CPU(s), shared with other jobs (load average {os.getloadavg()[0]:.1f} at the end). "
