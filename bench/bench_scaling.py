@@ -244,29 +244,30 @@ def main() -> int:
     ref = rows[0]
     print(
         "\n| run | frames/s | × single node | p50 ms | p95 ms | CPU ms/frame: publisher, processor or merger, "
-        "workers | detections & tracks = single node |"
+        "workers | cores used | detections & tracks = single node |"
     )
-    print("|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|")
     table = []
     for r in rows:
         same, worst = compare(ref, r) if r is not ref else (True, 0.0)
         ratio = r["rate_hz"] / ref["rate_hz"]
         cell = "reference" if r is ref else ("yes" if same else "NO") + f" (max Δ {worst * 1e9:.1f} nm)"
         c = r["cpu_ms"]
+        cores = r["rate_hz"] * (c["publisher"] + c["head"] + c["workers"]) / 1e3  # CPU s per s: the cores we got
         print(
             f"| {r['label']} | {r['rate_hz']:.1f} | {ratio:.2f} | {r['p50_ms']:.0f} | {r['p95_ms']:.0f} | "
-            f"{c['publisher']:.0f}, {c['head']:.0f}, {c['workers']:.0f} | {cell} |"
+            f"{c['publisher']:.0f}, {c['head']:.0f}, {c['workers']:.0f} | {cores:.2f} | {cell} |"
         )
         keep = ("label", "workers", "window", "frames", "rate_hz", "p50_ms", "p95_ms", "cpu_ms", "latency_ms")
-        table.append({k: r[k] for k in keep} | {"ratio": ratio, "same": same, "max_delta_m": worst})
+        table.append({k: r[k] for k in keep} | {"ratio": ratio, "cores": cores, "same": same, "max_delta_m": worst})
     print(
         f"\nMachine: {cpus} CPU(s), shared with other jobs (load average {os.getloadavg()[0]:.1f} at the end). "
-        "Sharding spreads the γ work over processes, but every process here — publisher, router/merger, workers "
-        "— shares the same cores: the throughput is bounded by cores / (CPU ms per frame summed over the "
-        "columns above), and sharding adds CPU per frame (the merger receives each frame and forwards it to a "
-        "worker, decodes the γ-maps and tracks; each worker receives, decodes and encodes). Latency grows with "
-        "the frames in flight (2 per worker: Little's law). On more cores or machines the workers' column is "
-        "what spreads; the publisher and the merger stay one process each."
+        "'cores used' = frames/s × the CPU time per frame of all our processes: what the run got of the machine. "
+        "The rate is that share divided by the CPU time per frame; sharding adds CPU per frame (the merger "
+        "receives each frame, forwards it to a worker, decodes the γ-maps and tracks; each worker receives, "
+        "decodes and encodes) and spreads the workers' part over processes — it raises the rate only where "
+        "idle cores are left for the workers. Latency grows with the frames in flight (2 per worker: "
+        "Little's law)."
     )
     if args.json:
         Path(args.json).write_text(json.dumps(table, indent=1))
