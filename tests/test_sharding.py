@@ -13,6 +13,7 @@ import json
 import os
 import signal
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -163,3 +164,43 @@ def test_worker_killed_mid_run_nothing_lost_tracks_identical(tmp_path: Path) -> 
     finally:
         for p in procs:
             p.stop()
+
+
+def test_in_process_merger_reuses_indices_reports_bad_frames_and_drops_in_live_mode() -> None:
+    """Merger (router) and one worker in this process: a second replay of the same frame indices is merged
+    again (as a processor would); a frame without a readable header gets one ErrorReport from the merger;
+    in live mode (keep newest) a burst is merged in order with the skipped frames counted as dropped."""
+    from services.nodes.merger import Merger, MergerConfig
+    from services.nodes.worker import Worker, WorkerConfig
+
+    frames, cal = born_frames(4)
+    port = free_port()
+    hub = BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{port}"], connect=[])
+    for queue in ("fifo", "newest"):
+        rig = f"inproc-{queue}"
+        wcfg = WorkerConfig(**CONFIG, rig=rig, name="solo")
+        with open_session(hub) as hs, open_session(_client(port)) as ws, open_session(_client(port)) as ps:
+            with Worker(ws, wcfg, [FingerprintSpec("marker", calibration=cal)]):
+                with Merger(hs, MergerConfig(rig=rig, queue=queue, depth=1, min_workers=1, wait_workers_s=20)) as m:
+                    col = Collector(ps, rig)
+                    k = keys(rig)
+                    if queue == "fifo":
+                        for _ in range(2):
+                            Publisher(ps, rig, AcquisitionSource(frames), pace="ack", window=2, wait_timeout=20).run()
+                        dets = col.wait(k.detections, 8)
+                        assert [d.frame_index for d in dets] == [0, 1, 2, 3] * 2
+                        ps.put(k.rf, b"not a frame")
+                        errs = col.wait(k.errors, 1)
+                        assert len(errs) == 1 and errs[0].node == "merger" and errs[0].frame_index is None
+                        assert m.rejected == 1 and m.frames_processed == 8 and m.dropped == 0
+                    else:
+                        many = AcquisitionSource(frames, repeat=3)  # 12 frames back to back
+                        Publisher(ps, rig, many, pace="none", wait_timeout=20).run()
+                        deadline = time.monotonic() + 30
+                        while m.frames_processed + m.dropped < 12 and time.monotonic() < deadline:
+                            time.sleep(0.05)
+                        dets = col.on(k.detections)
+                        idx = [d.frame_index for d in dets]
+                        assert idx == sorted(idx) and len(idx) == m.frames_processed
+                        assert m.dropped >= 1 and m.frames_processed + m.dropped == 12 and 11 in idx
+                    col.close()

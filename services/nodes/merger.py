@@ -93,7 +93,6 @@ class Merger(Node):
         self._cond = threading.Condition()
         self._members: set[str] = set()
         self._frames: dict[int, _Frame] = {}
-        self._merged: deque[int] = deque(maxlen=4096)
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._tracker: Tracker | None = None
@@ -204,7 +203,7 @@ class Merger(Node):
             return
         t_pub = sample_publish_time(sample) or time.time()
         with self._cond:
-            if fi in self._frames or fi in self._merged:
+            if fi in self._frames:  # a frame already in hand (a re-sent frame); a later run may reuse indices
                 return
             self._frames[fi] = _Frame(t_pub, sample.payload, raw)
             self._dispatch()
@@ -268,7 +267,6 @@ class Merger(Node):
                     self._cond.wait(0.2)
                     continue
                 del self._frames[head]
-                self._merged.append(head)
             try:
                 self._emit(f, f.result)
             except Exception:  # the node never dies on one frame
