@@ -183,11 +183,11 @@ def check_grid_axes(
         bounds["--y"] = ranges.get("y_range") or (-apert[1], apert[1])
     for option, (lo, hi) in bounds.items():
         nodes = (hi - lo) / step + 1
-        if not nodes >= 1:
+        if not nodes >= 2:
             raise ValueError(
-                f"imaging grid axis {option}: [{lo:g}, {hi:g}] m holds no node (spacing {step:g} m); for z the "
-                f"record's time window reaches only {acq.c0 * t_last / 2:g} m (check the sampling frequency "
-                "and initial time)"
+                f"imaging grid axis {option}: [{lo:g}, {hi:g}] m holds fewer than 2 nodes at a spacing of {step:g} m "
+                f"(expected a spacing below the range; for z the record's time window reaches {acq.c0 * t_last / 2:g} "
+                "m: check the sampling frequency and initial time)"
             )
         budget.check(
             f"imaging grid axis {option} ({nodes:.3g} nodes at a {step * 1e3:.3g} mm spacing)",

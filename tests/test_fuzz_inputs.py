@@ -161,7 +161,7 @@ _values = st.one_of(
     st.tuples(st.integers(0, 3), st.integers(0, 4), st.integers(0, 9)).map(lambda s: np.zeros(s)),
 )
 _attrs = st.one_of(
-    st.text(max_size=40),
+    st.text(st.characters(blacklist_categories=("Cs",), blacklist_characters="\x00"), max_size=40),  # h5py-storable
     st.sampled_from(['{"probe": 1}', '{"timestamp": ["a"]}', "[1e400]", '{"sines": [[null]]}', "[{}]", "{"]),
 )
 
@@ -194,19 +194,14 @@ def test_uff_reader_raises_only_its_own_errors(base_uff: Path, tmp_path_factory,
 
 
 @SOME
-@given(st.integers(0, 10_000), st.integers(1, 4096), st.sampled_from(["truncate", "zero", "flip"]))
-def test_uff_reader_on_damaged_bytes(base_uff: Path, tmp_path_factory, at: int, n: int, how: str) -> None:
-    raw = bytearray(base_uff.read_bytes())
-    at %= len(raw)
-    if how == "truncate":
-        raw = raw[:at]
-    else:
-        raw[at : at + n] = bytes(min(n, len(raw) - at)) if how == "zero" else bytes(b ^ 0xA5 for b in raw[at : at + n])
+@given(st.integers(0, 10**9))
+def test_uff_reader_on_truncated_files(base_uff: Path, tmp_path_factory, at: int) -> None:
+    """Truncated at any byte: a UFFError naming the file. (Zeroed or flipped bytes inside HDF5's own metadata
+    can hang the HDF5 library in C, beyond any Python timeout; bench/fuzz_inputs.py runs those in a watchdog
+    process and counts the hangs.)"""
+    raw = base_uff.read_bytes()
     path = tmp_path_factory.mktemp("b") / "b.uff"
-    path.write_bytes(bytes(raw))
-    try:
-        frames = read_uff(path)
-    except (UFFError, BudgetError, FormatError) as exc:
-        assert str(exc)
-        return
-    assert frames and all(np.all(np.isfinite(a.rf)) for a in frames)
+    path.write_bytes(raw[: at % len(raw)])
+    with pytest.raises((UFFError, FormatError)) as err:
+        read_uff(path)
+    assert str(path) in str(err.value)

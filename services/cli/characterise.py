@@ -96,7 +96,7 @@ def run_characterise(args: argparse.Namespace) -> int:
     acq = read_uff(args.data, args.dataset, frames=[args.frame])[0]
     if not acq.probe.is_linear:
         raise ValueError("probe: fp characterise maps 2D (x–z) images; a linear array is expected")
-    band = parse_band(args.band) if args.band else acq.default_band()
+    band = parse_band(args.band) if args.band is not None else acq.default_band()
     ranges = grid_ranges(args)
     check_grid_axes(acq, band, ranges)
     grid = Grid.for_acquisition(acq, band, **ranges)

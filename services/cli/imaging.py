@@ -92,15 +92,15 @@ def grid_ranges(args: argparse.Namespace) -> dict[str, Any]:
     """The parsed --x/--y/--z/--spacing as keyword arguments of `fpcore.Grid.for_acquisition`."""
     y = getattr(args, "y_range", None)
     return {
-        "x_range": parse_range(args.x_range, "--x") if args.x_range else None,
-        "y_range": parse_range(y, "--y") if y else None,
-        "z_range": parse_range(args.z_range, "--z") if args.z_range else None,
-        "spacing": _spacing(args.spacing) if args.spacing else None,
+        "x_range": parse_range(args.x_range, "--x") if args.x_range is not None else None,
+        "y_range": parse_range(y, "--y") if y is not None else None,
+        "z_range": parse_range(args.z_range, "--z") if args.z_range is not None else None,
+        "spacing": _spacing(args.spacing) if args.spacing is not None else None,
     }
 
 
 def _spacing(text: str) -> float:
     d = parse_length(text, "--spacing")
-    if not d >= 1e-9:  # below a nanometre no grid fits in memory; the budget refuses the rest
-        raise ValueError(f"--spacing: expected a length >= 1nm, got {text!r}")
+    if not 1e-9 <= d <= 1.0:  # outside, no grid fits in memory or none has two nodes; the budget checks the rest
+        raise ValueError(f"--spacing: expected a length between 1nm and 1m, got {text!r}")
     return d

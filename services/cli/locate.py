@@ -71,6 +71,8 @@ def _moving(fp: Fingerprint, text: str, data: Acquisition) -> Fingerprint:
 
 def frame_selection(text: str) -> slice | list[int]:
     """--frames 'I' or 'A:B' (A < B, non-negative integers; either end may be left out)."""
+    if not text.strip():
+        raise ValueError(f"--frames: expected I or A:B with integers, got {text!r}")
     a, colon, b = text.partition(":")
     try:
         start, stop = int(a) if a else 0, (int(b) if b else None)
@@ -89,11 +91,11 @@ def run_locate(args: argparse.Namespace) -> int:
 
     console = make_console()
     sel = None
-    if args.frames:
+    if args.frames is not None:
         sel = frame_selection(args.frames)
     frames = read_uff(args.data, args.dataset, frames=sel)
     first = frames[0]
-    band = parse_band(args.band) if args.band else first.default_band()
+    band = parse_band(args.band) if args.band is not None else first.default_band()
     imager = make_imager(first, band, ranges=grid_ranges(args), n_freq=args.n_freq, n_out=args.n_out)
     grid = imager.grid
     spec, cal = fingerprint_spec(args, first, model_r0=(0.0, 0.0, 0.0))
@@ -112,7 +114,7 @@ def run_locate(args: argparse.Namespace) -> int:
             f"fingerprint from {args.calibration}: r0 = {np.round(fp.r0 * 1e3, 2)} mm, {how}, "
             f"N_S = {fp.n_s:.1f}, N_T = {fp.n_t:.1f}, G ≈ {fp.n_s * fp.n_t:.0f}"
         )
-    if args.velocity:
+    if args.velocity is not None:
         fp = _moving(fp, args.velocity, first)
     console.print(f"{len(frames)} frame(s), band {band[0] / 1e6:.2f}–{band[1] / 1e6:.2f} MHz, grid {grid.shape}")
     results = []

@@ -16,8 +16,8 @@ from fpcore.geometry import to_xyz
 from fpcore.metrics import DEFAULT_MAX_PFA
 from services.bus import add_bus_arguments, bus_from_args, open_session, stop_on_signals, tune_malloc, wait_until
 from services.cli.imaging import add_imaging_arguments, grid_ranges, int_at_least, number_in
-from services.nodes.processor import Processor, ProcessorConfig
 from services.models import parse_model
+from services.nodes.processor import Processor, ProcessorConfig
 from services.registry import FingerprintSpec
 from services.units import parse_band, parse_length, parse_position
 from services.wire import DEFAULT_MAX_BYTES
@@ -96,11 +96,11 @@ def add_process_parser(sub: argparse._SubParsersAction) -> None:
         help=f"refuse larger frames (default {DEFAULT_MAX_BYTES})",
     )
     node.add_argument(
-        "--status-period", type=number_in(0), default=1.0, help="seconds between Status messages (default 1)"
+        "--status-period", type=number_in(0, 3600), default=1.0, help="seconds between Status messages (default 1)"
     )
     node.add_argument(
         "--duration",
-        type=number_in(0, lo_open=False),
+        type=number_in(0, 1e9, lo_open=False),
         help="stop after this many seconds (default: run until signalled)",
     )
     add_bus_arguments(p, listen="tcp/127.0.0.1:7447", connect=None, warm_shm=True)  # sends maps: SHM pool at start
@@ -149,7 +149,7 @@ def config_from_args(args: argparse.Namespace) -> ProcessorConfig:
         name=args.name,
         queue=args.queue,
         fifo_depth=args.fifo_depth,
-        band=parse_band(args.band) if args.band else None,
+        band=parse_band(args.band) if args.band is not None else None,
         n_freq=args.n_freq,
         svd_threshold=args.svd_threshold,
         **grid_ranges(args),

@@ -65,7 +65,7 @@ def run_track(args: argparse.Namespace) -> int:
     console = make_console()
     frames = read_uff(args.data, args.dataset)
     first = frames[0]
-    band = parse_band(args.band) if args.band else first.default_band()
+    band = parse_band(args.band) if args.band is not None else first.default_band()
     r = grid_ranges(args)
     cfg = PipelineConfig(
         band=band,
