@@ -468,3 +468,14 @@ def test_the_base_file_itself_is_accepted(corpus, tmp_path) -> None:
     o = run_in_process(["locate", str(base), "--model", "point", "--json", str(tmp_path / "r.json")])
     assert o.rc == 0, o.lines
     assert len(json.loads((tmp_path / "r.json").read_text())["frames"]) == 2
+
+
+def test_a_second_processor_on_a_taken_port_is_one_line(capsys) -> None:
+    """`fp process` while its port is taken (loopback): one line naming the endpoint, exit 2."""
+    from services.bus import BusConfig, free_port, open_session
+
+    port = free_port()
+    with open_session(BusConfig(listen=[f"tcp/127.0.0.1:{port}"], connect=[])):
+        o = run_in_process(["process", "--model", "point", "--listen", f"tcp/127.0.0.1:{port}", "--duration", "0"])
+    assert verdict(o) == "ok" and o.rc == 2, o.lines
+    assert f"127.0.0.1:{port}" in o.lines[0] and "in use" in o.lines[0]
