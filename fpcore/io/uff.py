@@ -642,11 +642,13 @@ def read_uff(
     (declared sizes beyond the memory budget) or ``fpcore.io.formats.FormatError`` (another format); whatever
     a damaged HDF5 file makes h5py raise is turned into a UFFError naming the file.
     """
+    from fpcore.io.formats import FormatError
+
     try:
         return _read_uff(path, dataset, frames)
-    except (ValueError, MemoryError):
+    except (UFFError, budget.BudgetError, FormatError, MemoryError):
         raise
-    except Exception as exc:  # safety net: h5py on a damaged file (KeyError, RuntimeError, OSError, ...)
+    except Exception as exc:  # safety net: h5py on a damaged file (KeyError, OSError, a math domain error, ...)
         raise UFFError(f"{path}: expected a readable UFF (HDF5) file, got {type(exc).__name__}: {exc}") from exc
 
 
