@@ -15,7 +15,8 @@ The imaging estimate counts the arrays of one frame (docs/design.md §4.1–4.3,
 spectrum (N_u N_θ N_FFT complex64), the plane-wave matrix and its projection (N_f N_o N_θ and
 N_f N_o N_u complex64), the NUFFT's points and one template per fingerprint (N_f N_o N_θ), and the maps
 on the grid (the NUFFT's oversampled fine grid, the complex field, the image, one γ-map, null level and CFAR
-per fingerprint), with per-element constants measured on `fp locate` runs. It is an estimate — within a
+per fingerprint) and the structured kernel's lateral tables (quadratic in the lateral node count), with
+per-element constants measured on `fp locate` runs. It is an estimate — within a
 factor 2 of the measured peak (tests/test_budget.py checks that on a grid and an output-direction sweep) —
 meant to refuse requests that are orders of magnitude too large before they start, not to count every byte.
 
@@ -185,7 +186,11 @@ def imaging_bytes(
     # `fp locate` (2-D, one fingerprint: ≈ 300 B per coefficient, ≈ 190 B per node; tests/test_budget.py).
     coefficients = m * (150 + 100 * k)
     maps = g * (8 * 2.0**ndim + 40 + 120 * k)
-    return spectrum + projection + coefficients + maps
+    # The structured kernel's per-lateral-axis synthesis tables: (n/2) × ≈3.2 n float64 cosines and sines
+    # with their temporaries (fpcore/kernel_presum.py): quadratic in the lateral node count — the term that
+    # made a frame with probe positions ×200 (22458 lateral nodes) ask for ~20 GiB.
+    lateral = sum(40.0 * float(n) ** 2 for n in grid_shape[:-1])
+    return spectrum + projection + coefficients + maps + lateral
 
 
 def check_rf_amplitude(rf: np.ndarray, field: str) -> None:
