@@ -19,6 +19,7 @@ from services.nodes.worker import Worker, WorkerConfig
 __all__ = ["add_worker_parser", "run_worker"]
 
 log = logging.getLogger("fp.worker")
+WAIT_FOR_ROUTER_MS = 60_000
 _UNUSED = ("--queue", "--fifo-depth", "--status-period", "--no-track", "--name")  # the merger's, or redefined
 
 
@@ -36,7 +37,8 @@ def add_worker_parser(sub: argparse._SubParsersAction) -> None:
         help="run a γ worker of a sharded processor (with fp merge)",
         description="γ worker: computes the frames of fp/<rig>/rf that the merger (fp merge) assigns to it "
         "and returns their γ-maps, image, null models and detections; announces itself on "
-        "fp/<rig>/alive/worker/<name>. Fingerprint and imaging options as fp process. docs/scaling.md.",
+        "fp/<rig>/alive/worker/<name>. Fingerprint and imaging options as fp process. Waits up to 60 s for its "
+        "router unless --connect-timeout-ms says otherwise. docs/scaling.md.",
     )
     node = p.add_argument_group("worker")
     node.add_argument("--name", help="worker name on the bus (default <host>-<pid>)")
@@ -51,6 +53,8 @@ def add_worker_parser(sub: argparse._SubParsersAction) -> None:
 
 def run_worker(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    if args.connect_timeout_ms is None and not args.zenoh_config:
+        args.connect_timeout_ms = WAIT_FOR_ROUTER_MS  # started before its router: wait for it
     bus = bus_from_args(args)
     tune_malloc()
     args.queue, args.fifo_depth, args.status_period, args.no_track = "fifo", 1, 1.0, True
