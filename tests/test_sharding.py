@@ -204,3 +204,39 @@ def test_in_process_merger_reuses_indices_reports_bad_frames_and_drops_in_live_m
                         assert idx == sorted(idx) and len(idx) == m.frames_processed
                         assert m.dropped >= 1 and m.frames_processed + m.dropped == 12 and 11 in idx
                     col.close()
+
+
+def test_frame_timeout_moves_a_hung_workers_frame() -> None:
+    """A worker that hangs on a frame keeps its token; with a frame timeout the merger sends that frame to
+    the other worker, merges the first result, in order, and counts the hung worker's late one as duplicate."""
+    from services.nodes.merger import Merger, MergerConfig
+    from services.nodes.worker import Worker, WorkerConfig
+
+    frames, cal = born_frames(4)
+    port, rig = free_port(), "hung"
+    hub = BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{port}"], connect=[])
+    specs = [FingerprintSpec("marker", calibration=cal)]
+    mcfg = MergerConfig(rig=rig, queue="fifo", depth=1, min_workers=2, wait_workers_s=20, frame_timeout_s=1.0)
+    with open_session(hub) as hs, open_session(_client(port)) as s1, open_session(_client(port)) as s2:
+        with (
+            Worker(s1, WorkerConfig(**CONFIG, rig=rig, name="hangs"), specs) as hung,
+            Worker(s2, WorkerConfig(**CONFIG, rig=rig, name="fine"), specs),
+        ):
+            compute = hung._compute
+
+            def stall_once(fi: int, payload: Any) -> Any:  # hangs 4 s on its first frame
+                if hung.frames_computed == 0:
+                    time.sleep(4.0)
+                return compute(fi, payload)
+
+            hung._compute = stall_once  # type: ignore[method-assign]
+            with Merger(hs, mcfg) as m, open_session(_client(port)) as ps:
+                col = Collector(ps, rig)
+                summary = Publisher(ps, rig, AcquisitionSource(frames), pace="ack", window=2, wait_timeout=20).run()
+                dets = col.wait(keys(rig).detections, 4)
+                deadline = time.monotonic() + 10
+                while m.duplicates < 1 and time.monotonic() < deadline:
+                    time.sleep(0.05)
+                col.close()
+                assert summary["acked"] == 4 and [d.frame_index for d in dets] == [0, 1, 2, 3]
+                assert m.timed_out >= 1 and m.duplicates == 1 and m.per_worker["fine"] >= 1

@@ -47,6 +47,12 @@ def add_merge_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--no-track", action="store_true", help="do not run the tracker (empty Tracks)")
     p.add_argument(
+        "--frame-timeout",
+        type=number_in(0, 3600),
+        help="re-send a frame a live worker has not returned after this many seconds (a hung worker; the "
+        "first result is merged). Default: only when the worker's token goes",
+    )
+    p.add_argument(
         "--status-period", type=number_in(0, 3600), default=1.0, help="seconds between Status messages (default 1)"
     )
     p.add_argument(
@@ -70,6 +76,7 @@ def run_merge(args: argparse.Namespace) -> int:
         wait_workers_s=args.wait_workers,
         track=not args.no_track,
         status_period=args.status_period,
+        frame_timeout_s=args.frame_timeout,
     )
     stop = stop_on_signals()
     with open_session(bus) as session:

@@ -29,7 +29,7 @@ import logging
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -62,12 +62,15 @@ class MergerConfig:
     wait_workers_s: float = 60.0
     track: bool = True
     status_period: float = 1.0
+    frame_timeout_s: float | None = None  # re-send a frame a live worker has not returned after this long
 
     def __post_init__(self) -> None:
         if self.queue not in ("newest", "fifo"):
             raise ValueError(f"--queue: expected 'newest' or 'fifo', got {self.queue!r}")
         if self.depth < 1:
             raise ValueError(f"--depth: expected >= 1, got {self.depth}")
+        if self.frame_timeout_s is not None and not self.frame_timeout_s > 0:
+            raise ValueError(f"--frame-timeout: expected > 0 seconds, got {self.frame_timeout_s}")
         if self.min_workers < 0:
             raise ValueError(f"--workers: expected >= 0, got {self.min_workers}")
 
@@ -79,6 +82,8 @@ class _Frame:
     header: bytes
     worker: str | None = None
     sent: int = 0  # times it was forwarded to a worker
+    t_sent: float = 0.0  # time.monotonic() of the last forward
+    slow: set[str] = field(default_factory=set)  # workers that did not return it within the frame timeout
     result: ShardResult | None = None
 
 
@@ -102,6 +107,7 @@ class Merger(Node):
         self.rejected = 0
         self.reassigned = 0
         self.duplicates = 0
+        self.timed_out = 0
         self.per_worker: dict[str, int] = {}
         self.dictionary: list[str] = []
         self._latency: deque[float] = deque(maxlen=1000)
@@ -163,6 +169,7 @@ class Merger(Node):
             "rejected": self.rejected,
             "reassigned": self.reassigned,
             "duplicates": self.duplicates,
+            "timed_out": self.timed_out,
             "per_worker": dict(self.per_worker),
             "workers": self.workers,
             "frame_rate_hz": rate,
@@ -244,12 +251,18 @@ class Merger(Node):
             f = self._frames[fi]
             if f.worker is not None or f.result is not None:
                 continue
+            if f.slow and not set(members) - f.slow:  # only slow workers are left: back to them
+                f.slow.clear()
             free = [w for w in members if load[w] < self.cfg.depth]
             if not free:
                 return
+            free = [w for w in free if w not in f.slow] or ([] if f.slow else free)
+            if not free:
+                continue
             w = min(free, key=lambda m: (load[m], (members.index(m) - fi) % n))
             f.worker, load[w] = w, load[w] + 1
             f.sent += 1
+            f.t_sent = time.monotonic()
             self.session.put(
                 self.keys.shard_assign_to(w),
                 f.payload,
@@ -265,12 +278,30 @@ class Merger(Node):
                 f = self._frames.get(head) if head is not None else None
                 if f is None or f.result is None:
                     self._cond.wait(0.2)
+                    self._check_timeouts()
                     continue
                 del self._frames[head]
             try:
                 self._emit(f, f.result)
             except Exception:  # the node never dies on one frame
                 log.exception("frame %s: merge failed", head)
+
+    def _check_timeouts(self) -> None:
+        """``frame_timeout_s``: a frame a live worker has not returned in time (hung, not dead: its token is
+        still there) goes to another worker; the first result is merged, a later one counted as duplicate."""
+        limit = self.cfg.frame_timeout_s
+        if limit is None:
+            return
+        now = time.monotonic()
+        late = [(i, f) for i, f in self._frames.items() if f.worker is not None and f.result is None]
+        late = [(i, f) for i, f in late if now - f.t_sent > limit and self._members - f.slow - {f.worker}]
+        for fi, f in late:  # only when another live worker can take it
+            log.warning("frame %s: no result from %s after %.1f s; sent to another worker", fi, f.worker, limit)
+            f.slow.add(f.worker or "")
+            f.worker = None
+            self.timed_out += 1
+        if late:
+            self._dispatch()
 
     def _emit(self, f: _Frame, res: ShardResult) -> None:
         """Publish one frame as the processor does: [truth report,] image, γ-maps, tracks, detections (or the
