@@ -99,14 +99,14 @@ def run_pipeline(
     t0 = time.time()
     rec: Any = None
     with contextlib.ExitStack() as stack:
-        s_proc = stack.enter_context(open_session(BusConfig(listen=[hub], connect=[], shm=shm)))
+        s_proc = stack.enter_context(open_session(BusConfig(listen=[hub], connect=[], shm=shm, warm_shm=True)))
         node = stack.enter_context(Processor(s_proc, cfg, fingerprints, on_result=on_result))
         nodes.append(node)
         if record:
             s_rec = stack.enter_context(open_session(BusConfig(listen=[EPHEMERAL], connect=[hub], shm=shm)))
             stamp = time.strftime("%Y%m%dT%H%M%S")
             rec = stack.enter_context(Recorder(s_rec, out / f"{rig}-{stamp}.mcap", rig=rig))
-        s_pub = stack.enter_context(open_session(BusConfig(listen=[EPHEMERAL], connect=[hub], shm=shm)))
+        s_pub = stack.enter_context(open_session(BusConfig(listen=[EPHEMERAL], connect=[hub], shm=shm, warm_shm=True)))
         pub = Publisher(
             s_pub,
             rig,
