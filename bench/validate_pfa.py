@@ -139,7 +139,9 @@ def main() -> None:
     ap.add_argument("--iid", type=int, default=400, help="i.i.d. null maps")
     ap.add_argument("--maps2d", type=int, default=160, help="2-D fog-only maps")
     ap.add_argument("--maps3d", type=int, default=48, help="3-D fog-only maps")
-    ap.add_argument("--power", type=int, default=16, help="frames with targets per scenario")
+    ap.add_argument(
+        "--power", type=int, default=16, help="maps with targets per scenario (frames × targets: 32 = 16 frames × 2)"
+    )
     ap.add_argument(
         "--frames-per-seed",
         type=int,
