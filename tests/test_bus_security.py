@@ -161,8 +161,16 @@ def test_only_authenticated_and_authorised_sessions_reach_the_processor(secrets,
                         seen.append(sample.payload.to_bytes())
 
                 sub = s_view.declare_subscriber(k.detections, on_detections)
+                # The viewer may announce itself as a viewer, never as the rig's processor or a worker.
+                forged = [s_view.liveliness().declare_token(f"{k.alive(r)}/forged") for r in ("processor", "worker")]
+                own = s_view.liveliness().declare_token(f"{k.alive('viewer')}/v1")
                 # 4. The operator changes the dictionary; the publisher's frames are processed and reach the viewer.
                 with open_session(client_bus(secrets / "operator.json5", port)) as s_op:
+                    assert wait_for_token(s_op, f"{k.alive('viewer')}/v1", 10)
+                    assert not wait_for_token(s_op, f"{k.alive('processor')}/forged", 1.0)
+                    assert not wait_for_token(s_op, f"{k.alive('worker')}/**", 0.5)
+                    for t in [*forged, own]:
+                        t.undeclare()
                     res = dictionary_request(s_op, rig, "set", payload={"svd_threshold": 0.5}, timeout=20)
                     assert res["ok"] and res["params"]["svd_threshold"] == 0.5 and node.cfg.svd_threshold == 0.5
                 with open_session(client_bus(secrets / "publisher.json5", port)) as s_pub:

@@ -101,20 +101,25 @@ def make_secrets(out: Path, hosts: list[str], router: str, users: list[str], for
     """Everything of the module doc in ``out``; returns ``out``."""
     if shutil.which("openssl") is None:
         raise RuntimeError("openssl not found on PATH (it generates the certificates)")
-    out.mkdir(parents=True, exist_ok=True)
+    out.mkdir(mode=0o700, parents=True, exist_ok=True)
+    out.chmod(0o700)  # an existing folder too: it holds keys and passwords
     existing = [p.name for p in out.glob("*") if p.suffix in (".key", ".crt", ".txt", ".json5")]
     if existing and not force:
         raise RuntimeError(f"{out} already holds {sorted(existing)}; pass --force to replace them")
     make_certificates(out, hosts)
     passwords = {u: secrets.token_urlsafe(18) for u in users}
-    cred = out / "credentials.txt"
-    cred.write_text("".join(f"{u}:{p}\n" for u, p in passwords.items()))
-    cred.chmod(0o600)
+    _write_private(out / "credentials.txt", "".join(f"{u}:{p}\n" for u, p in passwords.items()))
     for u, p in passwords.items():
-        f = out / f"{u}.json5"
-        f.write_text(client_config(u, p, router, (out / "ca.crt").resolve()) + "\n")
-        f.chmod(0o600)
+        _write_private(out / f"{u}.json5", client_config(u, p, router, (out / "ca.crt").resolve()) + "\n")
     return out
+
+
+def _write_private(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` readable by its owner only, from its creation on (never world-readable)."""
+    fd = os.open(path, os.O_CREAT | os.O_WRONLY | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+    path.chmod(0o600)  # a file that already existed keeps its mode on open
 
 
 def main(argv: list[str] | None = None) -> int:
