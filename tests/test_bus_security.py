@@ -240,7 +240,7 @@ def test_non_loopback_listeners_need_allow_remote(tmp_path) -> None:
 
 def test_cli_refuses_a_remote_listener_in_one_line(tmp_path) -> None:
     res = subprocess.run(
-        [sys.executable, "-m", "services.cli", "process", "--model", "point", "--listen", "tcp/0.0.0.0:7447"],
+        [sys.executable, "-m", "services.cli", "process", "--model", "point", "--listen", "tcp/192.0.2.1:7447"],
         cwd=ROOT,
         capture_output=True,
         text=True,
@@ -248,7 +248,7 @@ def test_cli_refuses_a_remote_listener_in_one_line(tmp_path) -> None:
     )
     lines = res.stderr.strip().splitlines()
     assert res.returncode == 2 and len(lines) == 1 and "Traceback" not in res.stderr
-    assert "--allow-remote" in lines[0] and "tcp/0.0.0.0:7447" in lines[0]
+    assert "--allow-remote" in lines[0] and "tcp/192.0.2.1:7447" in lines[0]
     missing = tmp_path / "none.json5"
     res = subprocess.run(
         [sys.executable, "-m", "services.cli", "record", "--zenoh-config", str(missing)],
@@ -267,5 +267,7 @@ def test_make_secrets_never_overwrites_without_force(secrets) -> None:
     )
     assert res.returncode == 2 and "already holds" in res.stderr and "--force" in res.stderr
     assert (secrets / "credentials.txt").stat().st_mode & 0o077 == 0  # passwords readable by their owner only
+    for p in [secrets, *(secrets / f"{u}.json5" for u in USERS.split(",")), *secrets.glob("*.key")]:
+        assert p.stat().st_mode & 0o077 == 0, p.name  # keys and client configs (passwords) too, and the folder
     users = [line.split(":", 1)[0] for line in (secrets / "credentials.txt").read_text().splitlines()]
     assert users == USERS.split(",")
