@@ -55,6 +55,9 @@ __all__ = [
 
 VERSION_PATTERN = r"^[0-9]+\.[0-9]+$"
 Vec3 = tuple[float, float, float]
+#: Largest physical RF amplitude a frame may carry: ``fpcore.budget.MAX_RF_ABS`` (float32 spectra and
+#: energies overflow beyond it), repeated here so that decoding never imports fpcore (tests/test_wire.py).
+MAX_RF_ABS = 1e12
 
 
 _AXIS = array_field("<f8", ndim=1, finite=True, min_size=1)
@@ -291,7 +294,26 @@ class RFFrame(Message):
             raise ArrayFieldError("sines", "expected s_x² + s_y² < 1 for every transmit")
         if self.rf_scale is not None and self.rf.dtype != np.int16:
             raise ArrayFieldError("rf_scale", f"expected only with int16 RF, got RF of dtype {self.rf.dtype}")
+        self._check_amplitude()
         return self
+
+    def _check_amplitude(self) -> None:
+        """max |rf| × (rf_scale or 1) ≤ :data:`MAX_RF_ABS` (the limit fpcore.budget puts on files)."""
+        scale = 1.0 if self.rf_scale is None else self.rf_scale
+        if self.rf.dtype == np.int16 and 32768.0 * scale <= MAX_RF_ABS:
+            return  # no int16 sample can exceed it: no pass over the data
+        peak = max(abs(float(np.max(self.rf))), abs(float(np.min(self.rf))))
+        if peak * scale <= MAX_RF_ABS:
+            return
+        if self.rf_scale is None:
+            raise ArrayFieldError(
+                "rf", f"samples reach {peak:.3g}, above {MAX_RF_ABS:.0e}; expected values rescaled to a smaller unit"
+            )
+        raise ArrayFieldError(
+            "rf_scale",
+            f"expected at most {MAX_RF_ABS / peak:.3g} (samples reach {peak:.0f}, RF = rf × rf_scale ≤ "
+            f"{MAX_RF_ABS:.0e}), got {self.rf_scale:.3g}",
+        )
 
     @classmethod
     def from_acquisition(cls, acq: Acquisition) -> RFFrame:

@@ -13,6 +13,7 @@ import pytest
 from pydantic import ValidationError
 
 from services.messages import (
+    MAX_RF_ABS,
     ConfocalImage,
     Detection,
     Detections,
@@ -594,6 +595,41 @@ def test_bad_prf_refused(prf: object) -> None:
     for bad in (prf, float("inf"), float("nan")):
         with pytest.raises(ValidationError, match="prf"):
             RFFrame.model_validate({**make_rf().model_dump(), "prf": bad})
+
+
+def test_rf_amplitude_limit_on_the_wire() -> None:
+    """RF beyond fpcore.budget.MAX_RF_ABS (float32 spectra would overflow) is refused at decoding in one line
+    naming rf, or rf_scale for int16 RF scaled past it; rf_scale must be finite and positive."""
+    from fpcore import budget
+
+    assert budget.MAX_RF_ABS == MAX_RF_ABS
+    big = make_rf()
+
+    payload = bytearray(encode(big))
+    decode(payload).rf[1, 2, 3] = -1e30
+    e = refused(bytes(payload), "rf", "samples reach 1e+30", "above 1e+12")
+    assert e.field == "rf" and "\n" not in str(e)
+    edge = bytearray(encode(big))
+    decode(edge).rf[0, 0, 0] = 1e12  # at the limit: accepted
+    decode(bytes(edge))
+
+    i16 = make_rf(dtype="<i2")
+
+    def scaled(value: object):  # noqa: ANN202
+        def edit(h: dict, d: bytes) -> None:
+            h["rf_scale"] = value
+
+        return edit
+
+    peak = float(np.max(np.abs(i16.rf.astype(np.float64))))
+    assert decode(tamper(i16, scaled(1e12 / peak))).rf_scale == 1e12 / peak
+    e = refused(tamper(i16, scaled(1e300)), "rf_scale", "expected at most", "got 1e+300")
+    assert e.field == "rf_scale" and "\n" not in str(e)
+    for bad in (0.0, -1.0, "big"):
+        assert refused(tamper(i16, scaled(bad)), "rf_scale").field == "rf_scale"
+    for bad in (float("inf"), float("nan"), 1e300):
+        with pytest.raises(ValidationError, match="rf_scale"):
+            RFFrame.model_validate({**i16.model_dump(), "rf_scale": bad})
 
 
 # ----------------------------------------------------------------------------------- copies / purity
