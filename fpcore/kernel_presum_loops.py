@@ -15,13 +15,15 @@ process loads them (a first frame costs what the next ones do) instead of compil
 numba keeps the cache next to this file (`__pycache__`, a clean clone), or in the user's cache
 folder when the package is read-only, or in NUMBA_CACHE_DIR when set; when none of these can be
 written (read-only install and home) `_jit` points NUMBA_CACHE_DIR's setting at a per-user folder of
-the temporary directory, and compiles without a cache only if that fails too — importing never fails.
+the temporary directory (created 0700; not used unless it is this user's own with no group/other
+bits), and compiles without a cache when that fails too — importing never fails.
 """
 
 from __future__ import annotations
 
 import importlib
 import os
+import stat
 import tempfile
 import threading
 from collections.abc import Callable
@@ -43,10 +45,26 @@ FRAC = 40  # fractional bits of the fixed-point depth positions
 u64 = np.uint64  # every index of the kernels (no negative-index wraparound code)
 
 
-def _fallback_cache_dir() -> str:
-    """A per-user numba cache folder in the temporary directory (used when numba finds no writable one)."""
-    user = str(os.getuid()) if hasattr(os, "getuid") else os.environ.get("USERNAME", "user")
-    return os.path.join(tempfile.gettempdir(), f"fpcore-numba-cache-{user}")
+def _fallback_cache_dir() -> str | None:
+    """A per-user numba cache folder in the temporary directory (used when numba finds no writable one), or
+    None when it is not safe: numba's cache index is a pickle, so on a shared temporary directory the folder
+    must be a real directory (no link) of this user that nobody else can write or read (mode 0700)."""
+    if not hasattr(os, "getuid"):  # Windows: the temporary directory is the user's own
+        return os.path.join(tempfile.gettempdir(), f"fpcore-numba-cache-{os.environ.get('USERNAME', 'user')}")
+    path = os.path.join(tempfile.gettempdir(), f"fpcore-numba-cache-{os.getuid()}")
+    try:
+        os.mkdir(path, 0o700)
+    except FileExistsError:
+        pass
+    except OSError:
+        return None
+    try:
+        st = os.lstat(path)
+    except OSError:
+        return None
+    if not stat.S_ISDIR(st.st_mode) or st.st_uid != os.getuid() or st.st_mode & 0o077:
+        return None  # planted by someone else, a link, or open to others: compile without a cache
+    return path
 
 
 def _jit(fn: Callable[..., None]) -> Callable[..., None]:
@@ -55,8 +73,9 @@ def _jit(fn: Callable[..., None]) -> Callable[..., None]:
     try:
         return nb.njit(fastmath=True, cache=True, nogil=True)(fn)
     except RuntimeError:  # "cannot cache function …: no locator available": nothing numba tried is writable
-        if not nb.config.CACHE_DIR:
-            nb.config.CACHE_DIR = _fallback_cache_dir()
+        fallback = None if nb.config.CACHE_DIR else _fallback_cache_dir()
+        if fallback is not None:
+            nb.config.CACHE_DIR = fallback
             try:
                 return nb.njit(fastmath=True, cache=True, nogil=True)(fn)
             except RuntimeError:

@@ -11,9 +11,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numba  # noqa: F401  (a required dependency: its absence fails these tests, never skips them)
 import pytest
-
-pytest.importorskip("numba")
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -58,18 +57,44 @@ def test_a_fresh_process_loads_the_kernels_from_the_disk_cache(tmp_path) -> None
     assert sum(hits for hits, _ in second.values()) >= len(used) - 1 and second["spread_depth"][0] >= 1, second
 
 
-def test_no_writable_cache_folder_falls_back_to_the_temporary_directory() -> None:
-    """numba finds no locator (only the NUMBA_CACHE_DIR one allowed, and it unset): the decorator points the
-    cache at a per-user folder of the temporary directory instead of failing the import."""
+FALLBACK = (
+    "import json, numba, fpcore.kernel_presum_loops as L; "
+    "print(json.dumps({'dir': numba.config.CACHE_DIR, 'fallback': L._fallback_cache_dir(), "
+    "'cache_path': L.spread_depth.stats.cache_path}))"
+)
+
+
+def _no_locator(tmp: Path) -> dict[str, str]:
+    """numba finds no locator (only the NUMBA_CACHE_DIR one allowed, and it unset); temporary directory ``tmp``."""
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
     env["NUMBA_CACHE_LOCATOR_CLASSES"] = "UserProvidedCacheLocator"
-    code = (
-        "import json, numba, fpcore.kernel_presum_loops as L; "
-        "print(json.dumps({'dir': numba.config.CACHE_DIR, 'fallback': L._fallback_cache_dir(), "
-        "'cache_path': L.spread_depth.stats.cache_path}))"
-    )
-    doc = _run(code, env)
+    env["TMPDIR"] = str(tmp)
+    return env
+
+
+def test_no_writable_cache_folder_falls_back_to_the_temporary_directory(tmp_path) -> None:
+    """The decorator points the cache at a per-user folder of the temporary directory, created 0700, instead of
+    failing the import."""
+    doc = _run(FALLBACK, _no_locator(tmp_path))
     assert doc["dir"] == doc["fallback"] and doc["cache_path"].startswith(doc["fallback"])
+    assert Path(doc["fallback"]).parent == tmp_path and Path(doc["fallback"]).stat().st_mode & 0o777 == 0o700
+
+
+@pytest.mark.skipif(not hasattr(os, "getuid"), reason="POSIX owners and modes")
+@pytest.mark.parametrize("mode", [0o755, 0o777, "link"])
+def test_a_fallback_folder_others_could_write_or_read_is_not_used(tmp_path, mode) -> None:
+    """numba's cache index is a pickle: a folder open to others (or a link planted in its place) is never
+    loaded from; the kernels are compiled without a cache."""
+    folder = tmp_path / f"fpcore-numba-cache-{os.getuid()}"
+    if mode == "link":
+        (tmp_path / "elsewhere").mkdir(mode=0o700)
+        folder.symlink_to(tmp_path / "elsewhere")
+    else:
+        folder.mkdir()
+        folder.chmod(mode)
+    doc = _run(FALLBACK, _no_locator(tmp_path))
+    assert doc == {"dir": "", "fallback": None, "cache_path": None}
+    assert not any(tmp_path.rglob("*.nbi"))
 
 
 def test_a_sending_session_creates_its_shm_pool_when_it_opens() -> None:
