@@ -173,24 +173,30 @@ def open_session(bus: BusConfig) -> Iterator[zenoh.Session]:
             _log_done = True
     cfg = zenoh_config(bus)
     mode = json.loads(cfg.get_json("mode") or "null") or "peer"
-    warm = False
+    warm, unpinned = False, None
     if bus.warm_shm:
         from services.bus_warm import pin_ephemeral_ports, wants_warmup
 
         warm = wants_warmup(cfg)
         if warm:
-            pin_ephemeral_ports(cfg)
+            unpinned = pin_ephemeral_ports(cfg)
     notes = bus_warnings(cfg) if mode != "client" else []
     if notes:
         print(f"fp: warning: {'; '.join(notes)}", file=sys.stderr, flush=True)
-    try:
-        session = zenoh.open(cfg)
-    except zenoh.ZError as exc:
-        first = zerror_line(exc)
-        where = [f"connect {json.loads(cfg.get_json('connect/endpoints') or 'null') or []}"]
-        if mode != "client":
-            where.insert(0, f"listen {listen_endpoints(cfg)}")
-        raise OSError(f"bus: could not open the zenoh {mode} session ({', '.join(where)}): {first}") from exc
+    for attempt in range(3):
+        try:
+            session = zenoh.open(cfg)
+            break
+        except zenoh.ZError as exc:
+            from services.bus_warm import repin_after
+
+            if attempt < 2 and repin_after(exc, cfg, unpinned):
+                continue  # a pinned port was taken by another process meanwhile: a fresh one
+            first = zerror_line(exc)
+            where = [f"connect {json.loads(cfg.get_json('connect/endpoints') or 'null') or []}"]
+            if mode != "client":
+                where.insert(0, f"listen {listen_endpoints(cfg)}")
+            raise OSError(f"bus: could not open the zenoh {mode} session ({', '.join(where)}): {first}") from exc
     with session:
         sink = None
         if warm:

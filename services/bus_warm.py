@@ -14,7 +14,8 @@ linked when another one warms (the processor when a publisher joins) map its poo
 Only for sessions that send large messages (``BusConfig.warm_shm``: ``fp process``, ``fp publish``),
 that have SHM on and listen on loopback TCP, without user/password authentication (the helper
 session could not log in) — otherwise nothing is done. Listeners on port 0 are given a free port
-first (:func:`pin_ephemeral_ports`) so the helper knows where to connect.
+first (:func:`pin_ephemeral_ports`) so the helper knows where to connect; when another process takes that
+port before the session binds it, ``services.bus.open_session`` pins a fresh one (3 tries in all).
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ import zenoh
 
 from services.bus_exposure import is_loopback, listen_endpoints
 
-__all__ = ["WARM_KEYS", "pin_ephemeral_ports", "wants_warmup", "warm_shm_pool"]
+__all__ = ["WARM_KEYS", "pin_ephemeral_ports", "repin_after", "wants_warmup", "warm_shm_pool"]
 
 #: Where warm-up messages go; a warming session also subscribes here (``services.bus.open_session``), so a
 #: session that warms later (a publisher joining a processor) reaches it too, and it maps that session's
@@ -54,14 +55,28 @@ def wants_warmup(cfg: zenoh.Config) -> bool:
     )
 
 
-def pin_ephemeral_ports(cfg: zenoh.Config) -> None:
-    """Loopback ``tcp/…:0`` listeners get a port that is free now (the helper session must know it)."""
+def pin_ephemeral_ports(cfg: zenoh.Config) -> list[str] | None:
+    """Loopback ``tcp/…:0`` listeners get a port that is free now (the helper session must know it); returns
+    the endpoints as they were when one was pinned (None otherwise), for :func:`repin_after` to retry with."""
     from services.bus import free_port
 
     eps = listen_endpoints(cfg)
     pinned = [f"{e[:-2]}:{free_port()}" if e.startswith("tcp/127.") and e.endswith(":0") else e for e in eps]
-    if pinned != eps:
-        cfg.insert_json5("listen/endpoints", json.dumps(pinned))
+    if pinned == eps:
+        return None
+    cfg.insert_json5("listen/endpoints", json.dumps(pinned))
+    return eps
+
+
+def repin_after(exc: Exception, cfg: zenoh.Config, original: list[str] | None) -> bool:
+    """After opening failed with ``exc``: when it is "address in use" on ports :func:`pin_ephemeral_ports`
+    chose (another process took one between the probe and the bind), pin fresh ones; True to try again."""
+    text = str(exc)
+    if original is None or not ("Address already in use" in text or "os error 98" in text or "10048" in text):
+        return False
+    cfg.insert_json5("listen/endpoints", json.dumps(original))
+    pin_ephemeral_ports(cfg)
+    return True
 
 
 def warm_shm_pool(session: zenoh.Session, cfg: zenoh.Config, timeout: float = 5.0) -> bool:

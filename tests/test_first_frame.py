@@ -118,3 +118,31 @@ def test_a_sending_session_creates_its_shm_pool_when_it_opens() -> None:
     login = zenoh_config(BusConfig(listen=[EPHEMERAL], connect=[], shm="64"))
     login.insert_json5("transport/auth/usrpwd/dictionary_file", '"/dev/null"')
     assert not wants_warmup(login)
+
+
+def test_a_pinned_port_taken_meanwhile_is_replaced(monkeypatch: pytest.MonkeyPatch) -> None:
+    """pin_ephemeral_ports probes a free port that the session binds later: when another process takes it in
+    between ("address in use"), open_session pins a fresh one instead of failing."""
+    import socket
+
+    import services.bus as bus_module
+    from services.bus import EPHEMERAL, BusConfig, open_session, zenoh_config
+    from services.bus_warm import wants_warmup
+
+    if not wants_warmup(zenoh_config(BusConfig(listen=[EPHEMERAL], connect=[], shm="64", warm_shm=True))):
+        pytest.skip("no SHM warm-up here: nothing is pinned")
+    real = bus_module.free_port
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        busy = taken.getsockname()[1]
+        probes: list[int] = []
+
+        def racy_free_port() -> int:  # the first probe returns a port another process holds by now
+            probes.append(busy if not probes else real())
+            return probes[-1]
+
+        monkeypatch.setattr(bus_module, "free_port", racy_free_port)
+        with open_session(BusConfig(listen=[EPHEMERAL], connect=[], shm="64", warm_shm=True)) as session:
+            assert session.info.zid() is not None
+        assert len(probes) == 2 and probes[0] == busy != probes[1]
