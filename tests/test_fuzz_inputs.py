@@ -193,6 +193,21 @@ def test_uff_reader_raises_only_its_own_errors(base_uff: Path, tmp_path_factory,
     assert frames and all(np.all(np.isfinite(a.rf)) for a in frames)
 
 
+@pytest.mark.parametrize("value", [math.inf, -math.inf, 1e300])
+def test_uff_wavefront_beyond_an_integer_is_named(base_uff: Path, tmp_path: Path, value: float) -> None:
+    """Found by bench/fuzz_inputs.py once read_uff stopped turning every exception into a UFFError: an infinite
+    wavefront code raised OverflowError (int(inf)) from our own parsing."""
+    path = tmp_path / "wf.uff"
+    shutil.copyfile(base_uff, path)
+    with h5py.File(path, "r+") as f:
+        wf = "channel_data/sequence/sequence_0002/wavefront"
+        del f[wf]
+        f.create_dataset(wf, data=value)
+    with pytest.raises(UFFError, match=r"sequence\[1\]/wavefront: expected plane \(0\), got") as info:
+        read_uff(path)
+    assert "\n" not in str(info.value)
+
+
 @SOME
 @given(st.integers(0, 10**9))
 def test_uff_reader_on_truncated_files(base_uff: Path, tmp_path_factory, at: int) -> None:

@@ -514,7 +514,10 @@ def _read_sequence(cd: h5py.Group, field: str, c0: float) -> tuple[np.ndarray, n
         wf_field = f"{field}[{i}]"
         wavefront = 1  # USTB's default: spherical (a spherical wave from infinity is plane)
         if "wavefront" in w:
-            wavefront = int(round(_scalar(w, "wavefront", f"{wf_field}/wavefront", "0 = plane")))
+            value = _scalar(w, "wavefront", f"{wf_field}/wavefront", "0 = plane")
+            if not math.isfinite(value):
+                raise UFFError(f"{wf_field}/wavefront: expected plane (0), got {value}")
+            wavefront = int(round(value))
         if wavefront not in (0, 1):
             raise UFFError(
                 f"{wf_field}/wavefront: expected plane (0), got {_WAVEFRONTS.get(wavefront, wavefront)} ({wavefront})"
@@ -639,8 +642,9 @@ def read_uff(
     frames: indices or slice of the frames to read (default: all).
 
     Bad input raises a ValueError that names the file or field: :class:`UFFError`, ``fpcore.budget.BudgetError``
-    (declared sizes beyond the memory budget) or ``fpcore.io.formats.FormatError`` (another format); whatever
-    a damaged HDF5 file makes h5py raise is turned into a UFFError naming the file.
+    (declared sizes beyond the memory budget) or ``fpcore.io.formats.FormatError`` (another format); what
+    h5py raises on a damaged HDF5 file (OSError, KeyError, ValueError, RuntimeError) is turned into a UFFError
+    naming the file, with the cause chained.
     """
     from fpcore.io.formats import FormatError
 
@@ -648,7 +652,8 @@ def read_uff(
         return _read_uff(path, dataset, frames)
     except (UFFError, budget.BudgetError, FormatError, MemoryError):
         raise
-    except Exception as exc:  # safety net: h5py on a damaged file (KeyError, OSError, a math domain error, ...)
+    except (OSError, KeyError, ValueError, RuntimeError) as exc:  # h5py/HDF5 on a damaged file (our own bugs,
+        # TypeError, NameError, AttributeError, ..., are not caught: the fuzz tests would see them)
         raise UFFError(f"{path}: expected a readable UFF (HDF5) file, got {type(exc).__name__}: {exc}") from exc
 
 
