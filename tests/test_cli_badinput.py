@@ -334,7 +334,9 @@ def _argument_cases(base: Path) -> list[Case]:
         Case("arg:demo:frames_negative", ["demo", "--frames=-3"], "--frames"),
         Case("arg:simulate:scenario_unknown", ["simulate", "nope", "--out", str(base.parent / "sim")], "nope"),
         Case(
-            "arg:simulate:frames_zero", ["simulate", "sinking-cylinder", "--quick", "--frames", "0", "--out", "x"], ""
+            "arg:simulate:frames_zero",
+            ["simulate", "sinking-cylinder", "--quick", "--frames", "0", "--out", "x"],
+            "--frames",
         ),
         Case(
             "arg:simulate:out_is_file",
@@ -342,22 +344,42 @@ def _argument_cases(base: Path) -> list[Case]:
             "exists",
         ),
         Case("arg:process:scenario_unknown", ["process", "--scenario", "nope", "--duration", "0"], "nope"),
-        Case("arg:process:targets_zero", ["process", "--model", "point", "--targets", "0", "--duration", "0"], ""),
-        Case("arg:process:spacing_zero", ["process", "--model", "point", "--spacing", "0", "--duration", "0"], ""),
-        Case("arg:process:n_freq_zero", ["process", "--model", "point", "--n-freq", "0", "--duration", "0"], ""),
-        Case("arg:process:n_out_zero", ["process", "--model", "point", "--n-out", "0", "--duration", "0"], ""),
+        Case(
+            "arg:process:targets_zero",
+            ["process", "--model", "point", "--targets", "0", "--duration", "0"],
+            "--targets",
+        ),
+        Case(
+            "arg:process:spacing_zero",
+            ["process", "--model", "point", "--spacing", "0", "--duration", "0"],
+            "--spacing",
+        ),
+        Case(
+            "arg:process:n_freq_zero", ["process", "--model", "point", "--n-freq", "0", "--duration", "0"], "--n-freq"
+        ),
+        Case("arg:process:n_out_zero", ["process", "--model", "point", "--n-out", "0", "--duration", "0"], "--n-out"),
         Case("arg:process:model_bad", ["process", "--model", "mirror:L=-2mm", "--duration", "0"], "L"),
-        Case("arg:process:fifo_zero", ["process", "--model", "point", "--fifo-depth", "0", "--duration", "0"], ""),
-        Case("arg:process:max_bytes_zero", ["process", "--model", "point", "--max-frame-bytes", "0"], ""),
-        Case("arg:process:status_nan", ["process", "--model", "point", "--status-period", "nan"], ""),
+        Case(
+            "arg:process:fifo_zero",
+            ["process", "--model", "point", "--fifo-depth", "0", "--duration", "0"],
+            "--fifo-depth",
+        ),
+        Case(
+            "arg:process:max_bytes_zero", ["process", "--model", "point", "--max-frame-bytes", "0"], "--max-frame-bytes"
+        ),
+        Case("arg:process:status_nan", ["process", "--model", "point", "--status-period", "nan"], "--status-period"),
         Case("arg:process:duration_negative", ["process", "--model", "point", "--duration=-1"], "--duration"),
         Case("arg:process:listen_bogus", ["process", "--model", "point", "--listen", "carrier-pigeon"], "endpoint"),
-        Case("arg:process:track_integrate_zero", ["process", "--model", "point", "--track-integrate", "0"], ""),
+        Case(
+            "arg:process:track_integrate_zero",
+            ["process", "--model", "point", "--track-integrate", "0"],
+            "--track-integrate",
+        ),
         Case("arg:publish:uff_missing", ["publish", "--uff", str(base.parent / "nope.uff")], "nope.uff"),
         Case("arg:publish:rate_zero", ["publish", "--uff", b, "--rate", "0"], "--rate"),
         Case("arg:publish:frames_negative", ["publish", "--uff", b, "--frames=-1"], "--frames"),
         Case("arg:publish:repeat_zero", ["publish", "--uff", b, "--repeat", "0"], "--repeat"),
-        Case("arg:fp:no_command", [], ""),
+        Case("arg:fp:no_command", [], "command"),
         Case("arg:fp:unknown_command", ["teleport"], "teleport"),
     ]
     return cases
