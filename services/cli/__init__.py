@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import sys
 import traceback
-import warnings
 from typing import NoReturn
 
 import fpcore
@@ -107,9 +106,7 @@ def main(argv: list[str] | None = None) -> int:
         budget.set_memory_budget(
             budget.parse_bytes(args.memory_budget, "--memory-budget") if args.memory_budget else None
         )
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # numpy overflow chatter: results are checked instead
-            return int(args.func(args))
+        return int(args.func(args))
     except (ValueError, OSError) as exc:
         print(f"fp {args.command}: error: {_one_line(exc)}", file=sys.stderr)
         return 2
