@@ -10,6 +10,8 @@ drain, stop threads); ``close`` then undeclares the token and the publishers.
 from __future__ import annotations
 
 import logging
+import threading
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 import zenoh
@@ -18,7 +20,34 @@ from services.bus import put_message
 from services.messages import ErrorReport, Message
 from services.topics import Keys
 
-__all__ = ["Node"]
+__all__ = ["Node", "start_warmed_thread"]
+
+
+def start_warmed_thread(warm: Callable[[], None], work: Callable[[], None], name: str) -> threading.Thread:
+    """Start the daemon thread that runs ``warm()`` (a pipeline's start-up set-up) then ``work()`` (the frame
+    loop); return it once ``warm`` is done, re-raising its error (the node does not start). The set-up runs on
+    the frame thread so that the frame-sized buffers it frees stay in that thread's malloc arena for the first
+    frame to reuse (set up on another thread, the first frame page-faulted through them: 66 ms against 30 ms
+    on quick 3-D frames; issue 15, item 4)."""
+    warmed = threading.Event()
+    error: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            warm()
+        except BaseException as exc:  # re-raised below, in the caller
+            error.append(exc)
+            return
+        finally:
+            warmed.set()
+        work()
+
+    thread = threading.Thread(target=run, name=name, daemon=True)
+    thread.start()
+    warmed.wait()
+    if error:
+        raise error[0]
+    return thread
 
 
 class Node:

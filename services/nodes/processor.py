@@ -41,11 +41,11 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from fpcore.budget import BudgetError
 from services.bus import FifoSlot, LatestSlot, sample_publish_time
 from services.convert import frame_messages
 from services.messages import ErrorReport, Latency, RFFrame, Status
-from services.nodes.base import Node
+from services.nodes.base import Node, start_warmed_thread
+from services.nodes.frame_errors import failure_report, truth_report
 from services.pipeline import Pipeline, PipelineConfig
 from services.registry import DictionaryServer, FingerprintSpec
 from services.runtime import limit_blas_threads
@@ -130,15 +130,9 @@ class Processor(Node):
             except OSError:  # no /proc (not Linux): leave BLAS as it is
                 pass
         self.declare_publishers("gamma", "image", "detections", "tracks", "status", "errors")
-        self._threads = [
-            threading.Thread(target=self._warm_then_work, name=f"{self.name}-worker", daemon=True),
-            threading.Thread(target=self._status_loop, name=f"{self.name}-status", daemon=True),
-        ]
-        self._warmed, self._warm_error = threading.Event(), None
-        self._threads[0].start()
-        self._warmed.wait()  # set up on the calibration's geometry, on the worker thread, before announcing the node
-        if self._warm_error is not None:
-            raise self._warm_error
+        # set up on the calibration's geometry, on the frame thread, before announcing the node
+        self._threads = [start_warmed_thread(self.pipeline.warm_up, self._work, f"{self.name}-worker")]
+        self._threads.append(threading.Thread(target=self._status_loop, name=f"{self.name}-status", daemon=True))
         self._threads[1].start()
         self._server.start_thread()
         self._sub = self.session.declare_subscriber(self.keys.rf, self._on_frame)
@@ -251,33 +245,13 @@ class Processor(Node):
             self.rejected += 1
             self.report(ErrorReport(key=key, field="payload", problem=f"{type(exc).__name__}: {exc}", node=self.name))
             return
-        if isinstance(msg, RFFrame) and msg.truth_problem:  # the RF is good: processed without its truth
-            self.report(
-                ErrorReport(
-                    frame_index=msg.frame_index,
-                    key=key,
-                    field="truth",
-                    problem=f"{msg.truth_problem}; the truth was dropped and the frame processed without it"[:2000],
-                    node=self.name,
-                )
-            )
+        assert isinstance(msg, RFFrame)
+        truth = truth_report(msg, key, self.name)  # the RF is good: processed without its truth
+        if truth is not None:
+            self.report(truth)
         self._slot.put(_Job(msg, key, t_pub, t_dec), self._stop)
 
     # -- processing ------------------------------------------------------------------------------------
-    def _warm_then_work(self) -> None:
-        """The worker thread: the start-up set-up (``Pipeline.warm_up``) first, then the frames. The set-up runs
-        here so that the frame-sized buffers it frees stay in this thread's malloc arena for the first frame to
-        reuse (set up on another thread, the worker page-faulted through its first frame: 66 ms against 30 ms
-        on quick 3-D frames; issue 15, item 4)."""
-        try:
-            self.pipeline.warm_up()
-        except BaseException as exc:  # re-raised by _open: the node does not start
-            self._warm_error = exc
-            return
-        finally:
-            self._warmed.set()
-        self._work()
-
     def _work(self) -> None:
         while not self._stop.is_set():
             try:
@@ -288,24 +262,8 @@ class Processor(Node):
                 self._process(job)
             except Exception as exc:  # the node never dies on one frame
                 self.failed += 1
-                # BudgetError: the frame's geometry would need more memory than the budget (fpcore.budget)
-                field_ = (
-                    "budget"
-                    if isinstance(exc, BudgetError)
-                    else "geometry"
-                    if isinstance(exc, ValueError)
-                    else "processing"
-                )
                 log.exception("frame %s failed", job.msg.frame_index)
-                self.report(
-                    ErrorReport(
-                        frame_index=job.msg.frame_index,
-                        key=job.key,
-                        field=field_,
-                        problem=f"{type(exc).__name__}: {exc}"[:2000],
-                        node=self.name,
-                    )
-                )
+                self.report(failure_report(exc, job.msg.frame_index, job.key, self.name))
 
     def _process(self, job: _Job) -> None:
         msg = job.msg

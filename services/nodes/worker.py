@@ -7,8 +7,10 @@ frame the worker runs the single-node pipeline without its tracker (``services.p
 detections), builds the wire messages the processor would publish (``services.convert.frame_messages``)
 and sends one shard result on ``fp/<rig>/@shard/result``: those messages' FPWIRE01 payloads exactly as
 they will be published, each map's null model (the tracker's input, fpcore.cfar.NullModel) and the
-tracker's settings. A frame that fails (bad payload, processing error) is answered ``failed`` with its
-ErrorReport. The merger runs the one tracker in frame order and publishes.
+tracker's settings. A frame that fails (bad payload, or anything its computation raises) is answered
+``failed`` with its ErrorReport (``services.nodes.frame_errors``, as the processor reports it) and the
+worker goes on: every assigned frame is answered. The merger runs the one tracker in frame order and
+publishes.
 
 The worker announces itself with the liveliness token ``fp/<rig>/alive/worker/<name>`` (declared last,
 after its subscription): the merger's membership, and the shares, follow the tokens.
@@ -36,12 +38,12 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from fpcore.budget import BudgetError
 from fpcore.cfar import NullModel
 from fpcore.grid import Grid
 from services.convert import frame_messages
 from services.messages import ErrorReport, RFFrame
-from services.nodes.base import Node
+from services.nodes.base import Node, start_warmed_thread
+from services.nodes.frame_errors import failure_report, truth_report
 from services.pipeline import Pipeline, PipelineConfig, tracker_settings
 from services.registry import FingerprintSpec
 from services.runtime import limit_blas_threads
@@ -226,12 +228,7 @@ class Worker(Node):
             except OSError:
                 pass
         self.declare_publishers("shard_result", "errors")
-        self._warmed, self._warm_error = threading.Event(), None
-        self._thread = threading.Thread(target=self._warm_then_work, name=f"{self.name}-work", daemon=True)
-        self._thread.start()
-        self._warmed.wait()
-        if self._warm_error is not None:
-            raise self._warm_error
+        self._thread = start_warmed_thread(self.pipeline.warm_up, self._work, f"{self.name}-work")
         self._subs = [self.session.declare_subscriber(self.keys.shard_assign_to(self.name), self._on_assign)]
 
     def _shutdown(self) -> None:
@@ -268,23 +265,31 @@ class Worker(Node):
             self._cond.notify_all()
 
     # -- work --------------------------------------------------------------------------------------------
-    def _warm_then_work(self) -> None:
-        try:
-            self.pipeline.warm_up()  # on this thread: its malloc arena keeps the frame buffers (processor.py)
-        except BaseException as exc:
-            self._warm_error = exc
-            return
-        finally:
-            self._warmed.set()
+    def _work(self) -> None:
+        """The frame loop: every assigned frame is answered, ``result`` or ``failed`` (the merger waits for it)."""
         while not self._stop.is_set():
             with self._cond:
                 if not self._assigned:
                     self._cond.wait(0.2)
                     continue
                 fi, payload = self._assigned.popleft()
-            self._send(self._compute(fi, payload))
+            try:
+                res = self._compute(fi, payload)
+                data = encode_shard(res)
+            except Exception as exc:  # the thread never dies on one frame (its token would stay up)
+                self.failed += 1
+                log.exception("frame %s failed", fi)
+                res = self._failed(fi, 0.0, [], failure_report(exc, fi, self.keys.rf, self.name))
+                data = encode_shard(res)
+            self.frames_computed += res.kind == "result"
+            self._send(fi, data)
+
+    def _failed(self, fi: int, timestamp: float, pre: list[tuple[str, bytes]], rep: ErrorReport) -> ShardResult:
+        return ShardResult(fi, timestamp, self.name, "failed", [*pre, ("errors", encode(rep))])
 
     def _compute(self, fi: int, payload: Any) -> ShardResult:
+        """One frame, as ``Processor._work`` does it: a frame that is refused or whose processing (pipeline,
+        output messages, encoding) raises is answered ``failed`` with its ErrorReport."""
         t0 = time.perf_counter()
         key = self.keys.rf
         raw = payload.to_bytes()
@@ -292,52 +297,32 @@ class Worker(Node):
             msg = decode(raw, max_bytes=self.cfg.max_frame_bytes, expect=RFFrame)
         except WireError as exc:
             self.failed += 1
-            rep = error_report(exc, key, raw, node=self.name)
-            return ShardResult(fi, 0.0, self.name, "failed", [("errors", encode(rep))])
+            return self._failed(fi, 0.0, [], error_report(exc, key, raw, node=self.name))
         assert isinstance(msg, RFFrame)
-        pre: list[tuple[str, bytes]] = []
-        if msg.truth_problem:  # processed without its truth, as the processor does
-            problem = f"{msg.truth_problem}; the truth was dropped and the frame processed without it"[:2000]
-            rep = ErrorReport(frame_index=fi, key=key, field="truth", problem=problem, node=self.name)
-            pre.append(("errors", encode(rep)))
+        truth = truth_report(msg, key, self.name)  # processed without its truth, as the processor does
+        pre = [] if truth is None else [("errors", encode(truth))]
         try:
-            res = self.pipeline.process(msg.to_acquisition())
+            return self._result(fi, msg, pre, t0)
         except Exception as exc:  # reported in frame order by the merger, like the processor's failures
             self.failed += 1
             log.exception("frame %s failed", fi)
-            field_ = (
-                "budget"
-                if isinstance(exc, BudgetError)
-                else "geometry"
-                if isinstance(exc, ValueError)
-                else "processing"
-            )
-            rep = ErrorReport(
-                frame_index=fi, key=key, field=field_, problem=f"{type(exc).__name__}: {exc}"[:2000], node=self.name
-            )
-            return ShardResult(fi, msg.timestamp, self.name, "failed", [*pre, ("errors", encode(rep))])
+            return self._failed(fi, msg.timestamp, pre, failure_report(exc, fi, key, self.name))
+
+    def _result(self, fi: int, msg: RFFrame, pre: list[tuple[str, bytes]], t0: float) -> ShardResult:
+        res = self.pipeline.process(msg.to_acquisition())
         out = frame_messages(res, fi, msg.timestamp)
         msgs = list(pre)
         if out["image"] is not None:
             msgs.append(("image", encode(out["image"])))
         msgs.extend(("gamma", encode(g)) for g in out["gamma"])
         msgs.append(("detections", encode(out["detections"])))
-        self.frames_computed += 1
+        settings = tracker_settings(res.acq, res.band, self.pipeline.cfg)
         return ShardResult(
-            fi,
-            msg.timestamp,
-            self.name,
-            "result",
-            msgs,
-            res.nulls,
-            tracker_settings(res.acq, res.band, self.pipeline.cfg),
-            res.grid,
-            time.perf_counter() - t0,
+            fi, msg.timestamp, self.name, "result", msgs, res.nulls, settings, res.grid, time.perf_counter() - t0
         )
 
-    def _send(self, res: ShardResult) -> None:
+    def _send(self, fi: int, payload: bytes) -> None:
         try:
-            payload = encode_shard(res)
             self._pubs["shard_result"].put(payload, timestamp=self.session.new_timestamp())
         except Exception as exc:  # pragma: no cover - only when the session is going down
-            log.error("%s: could not send frame %s: %s", self.name, res.frame_index, exc)
+            log.error("%s: could not send frame %s: %s", self.name, fi, exc)
