@@ -48,8 +48,8 @@ TABLE: dict[str, Topic] = {
     "dictionary": Topic("dictionary", None, "queryable of the processor's fingerprint dictionary"),
     "alive": Topic("alive", None, "liveliness tokens alive/<role>[/<name>]"),
     # Sharded processing (docs/scaling.md): '@' chunks are verbatim, so ``fp/<rig>/**`` (a recorder) never sees them.
-    "shard_assign": Topic("@shard/assign", None, "merger → one γ worker: the frame index it computes (JSON)"),
-    "shard_result": Topic("@shard/result", None, "γ worker → merger: one frame's results (services.nodes.shard)"),
+    "shard_assign": Topic("@shard/assign", None, "merger → one γ worker: the RFFrame it computes, as it came"),
+    "shard_result": Topic("@shard/result", None, "γ worker → merger: one frame's results (services.nodes.worker)"),
     "all": Topic("**", None, "everything of the rig"),
 }
 

@@ -53,6 +53,19 @@ def add_merge_parser(sub: argparse._SubParsersAction) -> None:
         "first result is merged). Default: only when the worker's token goes",
     )
     p.add_argument(
+        "--frame-deadline",
+        type=number_in(0, 86400),
+        help="give up a frame still without a result this many seconds after it was first sent to a worker: "
+        "one ErrorReport (field deadline) in its place, and the next frames go on. Default: wait",
+    )
+    p.add_argument(
+        "--fifo-depth",
+        type=int_at_least(1),
+        default=8,
+        help="frames held beyond the workers' --depth each (waiting for a worker or for an earlier frame); "
+        "a frame over that is refused (fifo: with an ErrorReport naming the limit). Default 8",
+    )
+    p.add_argument(
         "--status-period", type=number_in(0, 3600), default=1.0, help="seconds between Status messages (default 1)"
     )
     p.add_argument(
@@ -77,6 +90,8 @@ def run_merge(args: argparse.Namespace) -> int:
         track=not args.no_track,
         status_period=args.status_period,
         frame_timeout_s=args.frame_timeout,
+        frame_deadline_s=args.frame_deadline,
+        fifo_depth=args.fifo_depth,
     )
     stop = stop_on_signals()
     with open_session(bus) as session:

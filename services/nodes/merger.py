@@ -17,10 +17,20 @@ workers come and go. The merger keeps each frame (zenoh's buffer, no copy) until
 
 * a worker's token goes → the frames it had and did not return are sent to the others at once;
 * no worker alive → frames wait (``fifo``) until one comes;
-* a result that arrives twice (a worker thought dead came back) is published once (``duplicates``).
+* a result that arrives twice (a worker thought dead came back) is published once (``duplicates``);
+* a frame a worker could not compute comes back ``failed``: its ErrorReport is published in its place, in
+  frame order, and the frames after it go on (``failed``);
+* ``frame_timeout_s``: a frame a live worker has not returned in time goes to another live worker;
+  ``frame_deadline_s``: a frame still without a result that long after it was first forwarded is given up —
+  one ErrorReport (field ``deadline``) in its place, and a late result is counted as a duplicate.
 
 Queue modes as the processor's: ``fifo`` (replay) keeps every frame until it is merged; ``newest`` (live)
-keeps only the newest frame waiting for a free worker and counts the others as ``dropped``.
+keeps only the newest frame waiting for a free worker and counts the others as ``dropped``. Either way
+the merger holds at most ``fifo_depth`` frames beyond its workers' ``depth`` each (waiting for a worker, or
+merged and waiting for an earlier frame); a frame over that is refused and counted as ``dropped`` — in
+``fifo`` mode with an ErrorReport naming the limit (the frame's acknowledgement). The merger refuses rather
+than block the zenoh callback as the processor's FIFO does: the workers' results arrive on the same receive
+threads, so a blocked callback could stall the very results that would free room.
 """
 
 from __future__ import annotations
@@ -40,9 +50,10 @@ from services.bus import sample_publish_time
 from services.convert import track
 from services.messages import ErrorReport, GammaMap, Latency, Status, Tracks
 from services.nodes.base import Node
+from services.nodes.frame_errors import failure_report
 from services.nodes.worker import ShardResult, decode_shard
 from services.pipeline import make_tracker
-from services.wire import WireError, decode, decode_header, error_report, extract_header
+from services.wire import WireError, decode, decode_header, encode, error_report, extract_header
 
 __all__ = ["Merger", "MergerConfig"]
 
@@ -63,6 +74,8 @@ class MergerConfig:
     track: bool = True
     status_period: float = 1.0
     frame_timeout_s: float | None = None  # re-send a frame a live worker has not returned after this long
+    frame_deadline_s: float | None = None  # give a frame up (ErrorReport) this long after its first forward
+    fifo_depth: int = 8  # frames held beyond the workers' `depth` each; a frame over that is refused
 
     def __post_init__(self) -> None:
         if self.queue not in ("newest", "fifo"):
@@ -71,6 +84,10 @@ class MergerConfig:
             raise ValueError(f"--depth: expected >= 1, got {self.depth}")
         if self.frame_timeout_s is not None and not self.frame_timeout_s > 0:
             raise ValueError(f"--frame-timeout: expected > 0 seconds, got {self.frame_timeout_s}")
+        if self.frame_deadline_s is not None and not self.frame_deadline_s > 0:
+            raise ValueError(f"--frame-deadline: expected > 0 seconds, got {self.frame_deadline_s}")
+        if self.fifo_depth < 1:
+            raise ValueError(f"--fifo-depth: expected >= 1, got {self.fifo_depth}")
         if self.min_workers < 0:
             raise ValueError(f"--workers: expected >= 0, got {self.min_workers}")
 
@@ -83,6 +100,8 @@ class _Frame:
     worker: str | None = None
     sent: int = 0  # times it was forwarded to a worker
     t_sent: float = 0.0  # time.monotonic() of the last forward
+    t_first: float = 0.0  # time.monotonic() of the first forward
+    tried: set[str] = field(default_factory=set)  # workers it was forwarded to
     slow: set[str] = field(default_factory=set)  # workers that did not return it within the frame timeout
     result: ShardResult | None = None
 
@@ -108,6 +127,7 @@ class Merger(Node):
         self.reassigned = 0
         self.duplicates = 0
         self.timed_out = 0
+        self.failed = 0
         self.per_worker: dict[str, int] = {}
         self.dictionary: list[str] = []
         self._latency: deque[float] = deque(maxlen=1000)
@@ -149,6 +169,10 @@ class Merger(Node):
             self._cond.notify_all()
         for t in self._threads:
             t.join(timeout=30)
+        with self._cond:
+            pending = sorted(self._frames)
+        if pending:
+            log.warning("stopped with %d frames not merged (counted as pending): %s", len(pending), pending[:20])
         try:
             self._publish_status()
         except Exception:
@@ -163,8 +187,12 @@ class Merger(Node):
         lat = np.asarray(self._latency, float)
         d = self._done_times
         rate = (len(d) - 1) / (d[-1] - d[0]) if len(d) > 1 and d[-1] > d[0] else 0.0
+        with self._cond:
+            pending = len(self._frames)
         return {
             "frames_processed": self.frames_processed,
+            "failed": self.failed,
+            "pending": pending,  # frames in hand, not merged yet (at stop: never merged)
             "dropped": self.dropped,
             "rejected": self.rejected,
             "reassigned": self.reassigned,
@@ -209,17 +237,31 @@ class Merger(Node):
             self.report(error_report(exc, key, None, node=self.name))
             return
         t_pub = sample_publish_time(sample) or time.time()
+        newest = self.cfg.queue == "newest"
         with self._cond:
             if fi in self._frames:  # a frame already in hand (a re-sent frame); a later run may reuse indices
                 return
-            self._frames[fi] = _Frame(t_pub, sample.payload, raw)
-            self._dispatch()
-            if self.cfg.queue == "newest":  # keep only the newest frame that waits for a worker
-                waiting = sorted(i for i, f in self._frames.items() if f.worker is None and f.result is None)
-                for i in waiting[:-1]:
-                    del self._frames[i]
-                    self.dropped += 1
-            self._cond.notify_all()
+            limit = self.cfg.fifo_depth + self.cfg.depth * len(self._members)
+            replaced = sum(f.worker is None and f.result is None for f in self._frames.values()) if newest else 0
+            held = len(self._frames) - replaced  # in live mode the new frame replaces the waiting one
+            if held >= limit:
+                self.dropped += 1
+            else:
+                self._frames[fi] = _Frame(t_pub, sample.payload, raw)
+                self._dispatch()
+                if newest:  # keep only the newest frame that waits for a worker
+                    waiting = sorted(i for i, f in self._frames.items() if f.worker is None and f.result is None)
+                    for i in waiting[:-1]:
+                        del self._frames[i]
+                        self.dropped += 1
+                self._cond.notify_all()
+        if held >= limit and not newest:  # replay: the frame's acknowledgement, naming the limit
+            problem = (
+                f"the merger holds {held} frames, its limit (--fifo-depth {self.cfg.fifo_depth} beyond --depth "
+                f"{self.cfg.depth} per worker, {len(self._members)} workers); frame refused: pace the publisher "
+                "(--pace ack, --window within the limit) or raise --fifo-depth"
+            )
+            self.report(ErrorReport(frame_index=fi, key=key, field="fifo_depth", problem=problem, node=self.name))
 
     def _on_result(self, sample: zenoh.Sample) -> None:
         try:
@@ -261,8 +303,10 @@ class Merger(Node):
                 continue
             w = min(free, key=lambda m: (load[m], (members.index(m) - fi) % n))
             f.worker, load[w] = w, load[w] + 1
-            f.sent += 1
             f.t_sent = time.monotonic()
+            f.t_first = f.t_first if f.sent else f.t_sent
+            f.sent += 1
+            f.tried.add(w)
             self.session.put(
                 self.keys.shard_assign_to(w),
                 f.payload,
@@ -283,12 +327,16 @@ class Merger(Node):
                 del self._frames[head]
             try:
                 self._emit(f, f.result)
-            except Exception:  # the node never dies on one frame
+            except Exception as exc:  # the node never dies on one frame; reported as the processor does
+                self.failed += 1
                 log.exception("frame %s: merge failed", head)
+                self.report(failure_report(exc, head, self.keys.rf, self.name))
 
     def _check_timeouts(self) -> None:
         """``frame_timeout_s``: a frame a live worker has not returned in time (hung, not dead: its token is
-        still there) goes to another worker; the first result is merged, a later one counted as duplicate."""
+        still there) goes to another worker; the first result is merged, a later one counted as duplicate.
+        ``frame_deadline_s``: a frame without a result that long after its first forward is given up."""
+        self._check_deadlines()
         limit = self.cfg.frame_timeout_s
         if limit is None:
             return
@@ -303,16 +351,41 @@ class Merger(Node):
         if late:
             self._dispatch()
 
+    def _check_deadlines(self) -> None:
+        """Give up the frames forwarded more than ``frame_deadline_s`` ago and still without a result (every
+        worker that had them hung): one ErrorReport each, merged in frame order in place of the frame."""
+        limit = self.cfg.frame_deadline_s
+        if limit is None:
+            return
+        now = time.monotonic()
+        for fi, f in self._frames.items():
+            if f.result is None and f.sent and now - f.t_first > limit:
+                tried = ", ".join(sorted(f.tried))
+                log.warning("frame %s: no result from %s %.1f s after it was first sent; given up", fi, tried, limit)
+                problem = (
+                    f"no result from worker(s) {tried} within {limit:g} s of the frame's first forward "
+                    f"(--frame-deadline {limit:g}); the frame is skipped"
+                )
+                rep = ErrorReport(frame_index=fi, key=self.keys.rf, field="deadline", problem=problem, node=self.name)
+                f.result = ShardResult(fi, 0.0, self.name, "failed", [("errors", encode(rep))])
+                f.payload, f.worker = None, None
+
     def _emit(self, f: _Frame, res: ShardResult) -> None:
         """Publish one frame as the processor does: [truth report,] image, γ-maps, tracks, detections (or the
         frame's ErrorReport); the workers' payloads go out as they came."""
+        gammas = [p for t, p in res.messages if t == "gamma"]
+        if res.kind == "result":  # the dictionary the worker used, tracked or not
+            self.dictionary = [str(decode_header(extract_header(p)).fields.get("fingerprint")) for p in gammas]
         for topic, payload in res.messages:
             if topic == "detections":
-                states = self._track(res, [p for t, p in res.messages if t == "gamma"]) if self.cfg.track else []
+                states = self._track(res, gammas) if self.cfg.track else []
                 tracks = Tracks(frame_index=res.frame_index, timestamp=res.timestamp, tracks=[track(t) for t in states])
                 self.publish("tracks", tracks)
                 self._latency.append(max(time.time() - f.t_pub, 0.0) * 1e3)
             self._pubs[topic].put(payload, attachment=extract_header(payload), timestamp=self.session.new_timestamp())
+        if res.kind != "result":  # its ErrorReport is out: the frame is acknowledged, the next one goes on
+            self.failed += 1
+            return
         self.frames_processed += 1
         self.per_worker[res.worker] = self.per_worker.get(res.worker, 0) + 1
         self._done_times.append(time.monotonic())
@@ -325,7 +398,6 @@ class Merger(Node):
             g = decode(p, expect=GammaMap)
             assert isinstance(g, GammaMap)
             maps[g.fingerprint] = g.gamma
-        self.dictionary = list(maps)
         grid = res.grid
         if grid is None or not maps:
             return []
