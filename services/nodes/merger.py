@@ -376,6 +376,14 @@ class Merger(Node):
         gammas = [p for t, p in res.messages if t == "gamma"]
         if res.kind == "result":  # the dictionary the worker used, tracked or not
             self.dictionary = [str(decode_header(extract_header(p)).fields.get("fingerprint")) for p in gammas]
+        # Counted before the acknowledgement (detections, or the frame's ErrorReport) goes out: whoever
+        # paces on it sees the frame accounted for.
+        if res.kind != "result":
+            self.failed += 1
+        else:
+            self.frames_processed += 1
+            self.per_worker[res.worker] = self.per_worker.get(res.worker, 0) + 1
+            self._done_times.append(time.monotonic())
         for topic, payload in res.messages:
             if topic == "detections":
                 states = self._track(res, gammas) if self.cfg.track else []
@@ -383,12 +391,6 @@ class Merger(Node):
                 self.publish("tracks", tracks)
                 self._latency.append(max(time.time() - f.t_pub, 0.0) * 1e3)
             self._pubs[topic].put(payload, attachment=extract_header(payload), timestamp=self.session.new_timestamp())
-        if res.kind != "result":  # its ErrorReport is out: the frame is acknowledged, the next one goes on
-            self.failed += 1
-            return
-        self.frames_processed += 1
-        self.per_worker[res.worker] = self.per_worker.get(res.worker, 0) + 1
-        self._done_times.append(time.monotonic())
 
     def _track(self, res: ShardResult, gamma_payloads: list[bytes]) -> list[TrackState]:
         """The single node's tracker step (``Pipeline.process``) on the worker's maps and null models; a new

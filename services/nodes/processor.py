@@ -277,6 +277,9 @@ class Processor(Node):
             self.publish("gamma", g)
         self.publish("tracks", out["tracks"])
         t_done = time.time()
+        # Counted before the acknowledgement goes out: whoever paces on it sees the frame accounted for.
+        self.frames_processed += 1
+        self.stats_frames += 1
         self.publish("detections", out["detections"])
         t4 = time.perf_counter()
         latency_ms = max(t_done - job.t_pub, 0.0) * 1e3
@@ -287,8 +290,6 @@ class Processor(Node):
         st["encode_publish"] += t4 - t3
         self._latency.append(latency_ms)
         self._done_times.append(time.monotonic())
-        self.frames_processed += 1
-        self.stats_frames += 1
         if self.on_result is not None:
             self.on_result(
                 {
