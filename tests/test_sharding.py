@@ -38,7 +38,7 @@ CONFIG: dict[str, Any] = {"x_range": (-5e-3, 5e-3), "z_range": (10e-3, 22e-3), "
 
 
 def _client(port: int) -> BusConfig:
-    return BusConfig(mode="client", listen=None, connect=[f"tcp/127.0.0.1:{port}"])
+    return BusConfig(mode="client", listen=None, connect=[f"tcp/127.0.0.1:{port}"], shm="off")
 
 
 def _single_node(frames: list, cal: Any) -> dict[int, dict[str, Any]]:
@@ -176,7 +176,7 @@ def test_in_process_merger_reuses_indices_reports_bad_frames_and_drops_in_live_m
 
     frames, cal = born_frames(4)
     port = free_port()
-    hub = BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{port}"], connect=[])
+    hub = BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{port}"], connect=[], shm="off")
     for queue in ("fifo", "newest"):
         rig = f"inproc-{queue}"
         wcfg = WorkerConfig(**CONFIG, rig=rig, name="solo")
@@ -215,7 +215,7 @@ def test_frame_timeout_moves_a_hung_workers_frame() -> None:
 
     frames, cal = born_frames(4)
     port, rig = free_port(), "hung"
-    hub = BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{port}"], connect=[])
+    hub = BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{port}"], connect=[], shm="off")
     specs = [FingerprintSpec("marker", calibration=cal)]
     mcfg = MergerConfig(rig=rig, queue="fifo", depth=1, min_workers=2, wait_workers_s=20, frame_timeout_s=1.0)
     with open_session(hub) as hs, open_session(_client(port)) as s1, open_session(_client(port)) as s2:
@@ -273,7 +273,7 @@ def test_a_frame_that_fails_in_the_worker_yields_one_error_report_and_the_next_f
     monkeypatch.setattr(worker_module, "frame_messages", bad_output)
     frames, cal = born_frames(4)
     port, rig = free_port(), "fails"
-    hub = BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{port}"], connect=[])
+    hub = BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{port}"], connect=[], shm="off")
     mcfg = MergerConfig(
         rig=rig, queue="fifo", depth=1, min_workers=1, wait_workers_s=20, track=False, status_period=0.2
     )
@@ -318,7 +318,7 @@ def test_frame_deadline_gives_up_a_frame_its_only_worker_never_returns() -> None
 
     frames, cal = born_frames(4)
     port, rig = free_port(), "deadline"
-    hub = BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{port}"], connect=[])
+    hub = BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{port}"], connect=[], shm="off")
     mcfg = MergerConfig(rig=rig, queue="fifo", depth=1, min_workers=1, wait_workers_s=20)
     k, release = keys(rig), threading.Event()
     with open_session(hub) as hs, open_session(_client(port)) as ws, open_session(_client(port)) as ps:
@@ -365,7 +365,7 @@ def test_merger_refuses_frames_over_its_fifo_depth_and_counts_the_unmerged_at_st
 
     frames, _ = born_frames(4)
     port, rig = free_port(), "full"
-    hub = BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{port}"], connect=[])
+    hub = BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{port}"], connect=[], shm="off")
     mcfg = MergerConfig(rig=rig, queue="fifo", min_workers=0, wait_workers_s=0, fifo_depth=2)
     k = keys(rig)
     with open_session(hub) as hs, open_session(_client(port)) as ps:
