@@ -21,8 +21,8 @@ demo: $(STAMP)
 	$(BIN)/fp demo
 
 test: $(STAMP)
-	$(BIN)/ruff check fpcore services tests bench
-	$(BIN)/ruff format --check fpcore services tests bench
+	$(BIN)/ruff check fpcore services tests bench examples
+	$(BIN)/ruff format --check fpcore services tests bench examples
 	$(BIN)/python -m mypy fpcore
 	$(BIN)/python -m pytest
 
