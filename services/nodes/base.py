@@ -17,10 +17,41 @@ from typing import Any, ClassVar
 import zenoh
 
 from services.bus import put_message
-from services.messages import ErrorReport, Message
+from services.messages import ErrorReport, Latency, Message, Status
 from services.topics import Keys
 
 __all__ = ["Node", "start_warmed_thread"]
+
+
+def latency_summary(latencies_ms: Any) -> dict[str, float | None]:
+    """Median and p95 (ms) of a node's recent publish → result latencies (None before any frame)."""
+    import numpy as np
+
+    lat = np.asarray(latencies_ms, float)
+    return {
+        "median": float(np.median(lat)) if lat.size else None,
+        "p95": float(np.percentile(lat, 95)) if lat.size else None,
+    }
+
+
+def frame_rate(done_times: Any) -> float:
+    """Frames/s over a node's recent completion times (monotonic s); 0 before two frames."""
+    d = list(done_times)
+    return (len(d) - 1) / (d[-1] - d[0]) if len(d) > 1 and d[-1] > d[0] else 0.0
+
+
+def status_message(node: str, st: dict[str, Any], dictionary: list[str]) -> Status:
+    """The periodic Status of a frame-processing node (``fp process``, ``fp merge``) from its ``stats()``."""
+    lat = st["latency_ms"]
+    return Status(
+        node=node,
+        frames_processed=st["frames_processed"],
+        frame_rate_hz=st["frame_rate_hz"],
+        latency_ms=Latency(median=lat["median"], p95=lat["p95"]),
+        dropped=st["dropped"],
+        rejected=st["rejected"],
+        dictionary=dictionary,
+    )
 
 
 def start_warmed_thread(warm: Callable[[], None], work: Callable[[], None], name: str) -> threading.Thread:

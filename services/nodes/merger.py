@@ -48,8 +48,8 @@ import zenoh
 from fpcore.tracking import Tracker, TrackState
 from services.bus import sample_publish_time
 from services.convert import track
-from services.messages import ErrorReport, GammaMap, Latency, Status, Tracks
-from services.nodes.base import Node
+from services.messages import ErrorReport, GammaMap, Tracks
+from services.nodes.base import Node, frame_rate, latency_summary, status_message
 from services.nodes.frame_errors import failure_report
 from services.nodes.worker import ShardResult, decode_shard
 from services.pipeline import make_tracker
@@ -184,9 +184,6 @@ class Merger(Node):
             return sorted(self._members)
 
     def stats(self) -> dict[str, Any]:
-        lat = np.asarray(self._latency, float)
-        d = self._done_times
-        rate = (len(d) - 1) / (d[-1] - d[0]) if len(d) > 1 and d[-1] > d[0] else 0.0
         with self._cond:
             pending = len(self._frames)
         return {
@@ -200,11 +197,8 @@ class Merger(Node):
             "timed_out": self.timed_out,
             "per_worker": dict(self.per_worker),
             "workers": self.workers,
-            "frame_rate_hz": rate,
-            "latency_ms": {
-                "median": float(np.median(lat)) if lat.size else None,
-                "p95": float(np.percentile(lat, 95)) if lat.size else None,
-            },
+            "frame_rate_hz": frame_rate(self._done_times),
+            "latency_ms": latency_summary(self._latency),
         }
 
     # -- membership, frames and results (zenoh callbacks: bookkeeping only) -------------------------------
@@ -411,20 +405,7 @@ class Merger(Node):
 
     # -- status -------------------------------------------------------------------------------------------------
     def _publish_status(self) -> None:
-        st = self.stats()
-        lat = st["latency_ms"]
-        self.publish(
-            "status",
-            Status(
-                node=self.name,
-                frames_processed=self.frames_processed,
-                frame_rate_hz=st["frame_rate_hz"],
-                latency_ms=Latency(median=lat["median"], p95=lat["p95"]),
-                dropped=self.dropped,
-                rejected=self.rejected,
-                dictionary=self.dictionary,
-            ),
-        )
+        self.publish("status", status_message(self.name, self.stats(), self.dictionary))
 
     def _status_loop(self) -> None:
         while not self._stop.wait(self.cfg.status_period):

@@ -38,13 +38,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
 import zenoh
 
 from services.bus import FifoSlot, LatestSlot, sample_publish_time
 from services.convert import frame_messages
-from services.messages import ErrorReport, Latency, RFFrame, Status
-from services.nodes.base import Node, start_warmed_thread
+from services.messages import ErrorReport, RFFrame
+from services.nodes.base import Node, frame_rate, latency_summary, start_warmed_thread, status_message
 from services.nodes.frame_errors import failure_report, truth_report
 from services.pipeline import Pipeline, PipelineConfig
 from services.registry import DictionaryServer, FingerprintSpec
@@ -169,28 +168,18 @@ class Processor(Node):
     def stats(self) -> dict[str, Any]:
         """Counters, latency (ms), per-stage time (s, summed over the ``stats_frames`` frames since start
         or the last :meth:`reset_stats`) and the one-off set-up time."""
-        lat = np.asarray(self._latency, float)
         return {
             "frames_processed": self.frames_processed,
             "stats_frames": self.stats_frames,
             "dropped": self.dropped,
             "rejected": self.rejected,
             "failed": self.failed,
-            "frame_rate_hz": self._rate(),
-            "latency_ms": {
-                "median": float(np.median(lat)) if lat.size else None,
-                "p95": float(np.percentile(lat, 95)) if lat.size else None,
-            },
+            "frame_rate_hz": frame_rate(self._done_times),
+            "latency_ms": latency_summary(self._latency),
             "stages_s": dict(self.stage_s),
             "setup_s": self.pipeline.setup_s,
             "dictionary": self.dictionary,
         }
-
-    def _rate(self) -> float:
-        d = self._done_times
-        if len(d) < 2 or d[-1] <= d[0]:
-            return 0.0
-        return (len(d) - 1) / (d[-1] - d[0])
 
     # -- dictionary (services.registry.DictionaryHost: the pipeline's, with the node's identity) ------------
     @property
@@ -308,19 +297,7 @@ class Processor(Node):
     # -- status ----------------------------------------------------------------------------------------
     def _publish_status(self) -> None:
         st = self.stats()
-        lat = st["latency_ms"]
-        self.publish(
-            "status",
-            Status(
-                node=self.name,
-                frames_processed=self.frames_processed,
-                frame_rate_hz=st["frame_rate_hz"],
-                latency_ms=Latency(median=lat["median"], p95=lat["p95"]),
-                dropped=self.dropped,
-                rejected=self.rejected,
-                dictionary=st["dictionary"],
-            ),
-        )
+        self.publish("status", status_message(self.name, st, st["dictionary"]))
 
     def _status_loop(self) -> None:
         while not self._stop.wait(self.cfg.status_period):
