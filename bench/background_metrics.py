@@ -1,0 +1,308 @@
+"""Measurements of a multiple-scattering background, for any set of realisations (issue 12).
+
+Every function takes the background as spectra V (n_real, N_f, N_u, N_θ) complex: the transfer function
+from transmit θ (direction sines a_θ, (N_θ, 2)) to element u (positions (N_u, 3), array in z = 0) at
+frequencies f (Hz, a uniform grid), in this project's conventions (docs/design.md §3–4: spectra
+∫ r(t) e^{−i2πft} dt, outgoing waves e^{−ikr}, incident plane wave e^{−ik(a·ρ + c z)}). They apply as
+well to the Foldy–Lax reference (bench/foldy_lax_reference.py) as to `fpcore.simulate.medium`.
+
+Spectral weight w(f): the transducer's two-way band S(f) (`waves.Band.spectrum`) when a band is given,
+else a Hann bump over the frequencies given, normalised so that 2 ∫ w df = 1 (a pulse of unit peak).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fpcore.simulate.waves import Band
+
+__all__ = [
+    "spectral_weight",
+    "time_signal",
+    "gate_spectra",
+    "time_envelope",
+    "frequency_correlation_width",
+    "cbs_enhancement",
+    "confocal_contrast_slope",
+]
+
+
+def _step(freqs: np.ndarray) -> float:
+    f = np.asarray(freqs, dtype=np.float64)
+    if f.ndim != 1 or f.size < 2:
+        raise ValueError(f"freqs: expected at least 2 frequencies, got shape {f.shape}")
+    d = np.diff(f)
+    if not np.allclose(d, d[0], rtol=1e-6, atol=0):
+        raise ValueError("freqs: expected a uniform frequency grid")
+    return float(d[0])
+
+
+def _check(v: np.ndarray, freqs: np.ndarray) -> np.ndarray:
+    v = np.asarray(v)
+    if v.ndim != 4 or v.shape[1] != np.asarray(freqs).size:
+        raise ValueError(f"V: expected shape (n_real, N_f={np.asarray(freqs).size}, N_u, N_θ), got {v.shape}")
+    return v
+
+
+def spectral_weight(freqs: np.ndarray, band: Band | None = None) -> np.ndarray:
+    """w(f) ≥ 0 (1/Hz): S(f) of `band`, else a Hann bump over [f_0 − δf, f_last + δf] with 2 Σ w δf = 1."""
+    f = np.asarray(freqs, dtype=np.float64)
+    if band is not None:
+        return band.spectrum(f)
+    df = _step(f)
+    x = (f - f[0] + df) / (f[-1] - f[0] + 2 * df)
+    w = np.sin(np.pi * x) ** 2
+    return w / (2 * w.sum() * df)
+
+
+def time_signal(v: np.ndarray, freqs: np.ndarray, weight: np.ndarray, pad: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Analytic RF signal m(t) = 2 ∫_{f>0} w(f) V(f) e^{i2πft} df on t_j = j/(L δf), L = pad·N_f (one period
+    1/δf, carrier removed: |m| is exact). Returns t (L,) and m (n_real, L, N_u, N_θ) complex64; the real
+    RF is Re(m e^{i2πf_0 t}), so its mean square is ½⟨|m|²⟩."""
+    v = _check(v, freqs)
+    df = _step(freqs)
+    n_f = v.shape[1]
+    n_t = pad * n_f
+    x = (v * (2 * df * np.asarray(weight))[None, :, None, None]).astype(np.complex64)
+    m = np.fft.ifft(x, n=n_t, axis=1) * n_t
+    return np.arange(n_t) / (n_t * df), m.astype(np.complex64)
+
+
+def _gate(t: np.ndarray, gate: tuple[float, float], taper: float) -> np.ndarray:
+    """1 on [t1, t2], cosine flanks of `taper` seconds outside it, 0 beyond."""
+    t1, t2 = gate
+    if not t2 > t1:
+        raise ValueError(f"gate: expected t1 < t2 (seconds), got {gate}")
+    g = ((t >= t1) & (t <= t2)).astype(np.float64)
+    if taper > 0:
+        for edge, sgn in ((t1, -1), (t2, 1)):
+            d = sgn * (t - edge)
+            on = (d > 0) & (d < taper)
+            g[on] = 0.5 + 0.5 * np.cos(np.pi * d[on] / taper)
+    return g
+
+
+def gate_spectra(
+    v: np.ndarray, freqs: np.ndarray, gate: tuple[float, float], taper: float = 1e-6, pad: int = 4
+) -> np.ndarray:
+    """V restricted to arrival times in `gate` (s): inverse DFT over the band (no weight), multiply by the gate
+    (cosine flanks `taper` s wide), DFT back onto the same frequencies. Same shape as V."""
+    v = _check(v, freqs)
+    df = _step(freqs)
+    n_f = v.shape[1]
+    n_t = pad * n_f
+    t = np.arange(n_t) / (n_t * df)
+    y = np.fft.ifft(v, n=n_t, axis=1)
+    y *= _gate(t, gate, taper)[None, :, None, None]
+    return np.fft.fft(y, axis=1)[:, :n_f].astype(np.complex64)
+
+
+def time_envelope(
+    v: np.ndarray, freqs: np.ndarray, band: Band | None = None, pad: int = 4
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mean-square RF ⟨r²⟩(t) = ½⟨|m(u, θ, t)|²⟩ averaged over elements, transmits and realisations, with m the
+    analytic signal of w(f)V(f) (`time_signal`; w = S(f) of `band` or a Hann bump). Returns (t, intensity)
+    over one period 1/δf; relative to the incident pulse's peak² when w = S."""
+    t, m = time_signal(v, freqs, spectral_weight(freqs, band), pad)
+    return t, 0.5 * np.mean(np.abs(m) ** 2, axis=(0, 2, 3))
+
+
+def frequency_correlation_width(
+    v: np.ndarray, freqs: np.ndarray, gate: tuple[float, float], taper: float = 1e-6, central: float = 0.5
+) -> dict[str, np.ndarray | float]:
+    """Half-width δf_½ of the frequency correlation of the background arriving within `gate` (s).
+
+    C(Δf) = Σ_f ⟨V_g(f) V_g*(f + Δf)⟩ / √(Σ_f ⟨|V_g(f)|²⟩ Σ_f ⟨|V_g(f + Δf)|²⟩), with V_g the gated spectra of
+    w(f)V(f) (Hann w over the frequencies given, `gate_spectra`), ⟨⟩ over elements, transmits, realisations,
+    and f restricted to the central part of the band where w ≥ `central`·max w. δf_½ is the smallest Δf
+    with |C(Δf)| ≤ 1/2 (linear interpolation). For a field whose intensity decays as e^{−t/τ} from the
+    gate's start (gate ≫ τ), |C| = (1 + (2πΔfτ)²)^{−1/2} and δf_½ = √3/(2πτ).
+    Returns width (Hz), dfs (Hz) and corr (|C|).
+    """
+    v = _check(v, freqs)
+    df = _step(freqs)
+    w = spectral_weight(freqs)
+    vg = gate_spectra(v * w[None, :, None, None], freqs, gate, taper)
+    idx = np.nonzero(w >= central * w.max())[0]
+    lo, hi = idx[0], idx[-1]
+    n_lag = hi - lo
+    corr = np.empty(n_lag)
+    p = np.mean(np.abs(vg) ** 2, axis=(0, 2, 3))
+    for lag in range(n_lag):
+        a = vg[:, lo : hi + 1 - lag]
+        b = vg[:, lo + lag : hi + 1]
+        num = np.abs(np.mean(a * np.conj(b), axis=(0, 2, 3)).sum())
+        corr[lag] = num / np.sqrt(p[lo : hi + 1 - lag].sum() * p[lo + lag : hi + 1].sum())
+    dfs = np.arange(n_lag) * df
+    below = np.nonzero(corr <= 0.5)[0]
+    if below.size == 0:
+        width = float("nan")
+    else:
+        j = below[0]
+        width = float(dfs[j - 1] + (corr[j - 1] - 0.5) / (corr[j - 1] - corr[j]) * df)
+    return {"width": width, "dfs": dfs, "corr": corr}
+
+
+def _out_grid(sines: np.ndarray, dim: int, extent: float) -> np.ndarray:
+    """Output sines b on the transmit lattice refined 2×, containing every −a, out to max|a| + extent."""
+    s = np.asarray(sines, dtype=np.float64)
+    axes = []
+    for d in range(dim - 1):
+        u = np.unique(np.round(s[:, d], 12))
+        step = float(np.min(np.diff(u))) / 2 if u.size > 1 else 0.02
+        m = int(np.ceil((np.max(np.abs(u)) + extent) / step))
+        axes.append(np.arange(-m, m + 1) * step)
+    if dim == 2:
+        return np.stack([axes[0], np.zeros_like(axes[0])], axis=1)
+    yy, xx = np.meshgrid(axes[1], axes[0], indexing="ij")
+    return np.stack([xx.ravel(), yy.ravel()], axis=1)
+
+
+def cbs_enhancement(
+    v: np.ndarray,
+    freqs: np.ndarray,
+    elements: np.ndarray,
+    sines: np.ndarray,
+    c0: float,
+    dim: int,
+    gate: tuple[float, float] | None = None,
+    q_out: float = 0.2,
+    bin_width: float | None = None,
+    out_sines: np.ndarray | None = None,
+) -> dict[str, np.ndarray | float]:
+    """Coherent-backscattering cone of the background in the plane-wave basis.
+
+    Outputs are projected onto upgoing plane waves b with R(f, b, a) = Σ_u V(f, u, a) e^{+ik b·u} (the
+    conjugate of the code's upgoing wave e^{−ik b·u}); transmit a is specular at b = a and exactly
+    retro-reflected at b = −a. P(b, a) = ⟨|R|²⟩ over frequencies and realisations (after the time `gate`,
+    if given, to keep multiple scattering). The angular envelope is divided out as a product
+    E_out(b) E_in(a) fitted on the pairs outside the cone (|b + a| > q_out): E_out(b) = mean over those a of
+    P, E_in(a) = mean over those b of P/E_out. The cone profile is the mean of P/(E_out E_in) in bins of
+    |q| = |b + a| (bin_width, default the b step), normalised by its mean outside the cone; the
+    enhancement is its value at q = 0 (pairs b = −a exactly; about 2 for reciprocal multiple scattering).
+
+    Reciprocity: Q(a', a) = R(−a', a)/c_a (c = cosine; the obliquity of a transmit synthesised by the
+    array, bench/foldy_lax_reference.py) is symmetric for a reciprocal medium; `reciprocity` is
+    |Σ_{a≠a'} Q Q^T*| / Σ_{a≠a'} |Q|² over frequencies and realisations (1: symmetric; ≈ 0: independent).
+    """
+    v = _check(v, freqs)
+    if gate is not None:
+        v = gate_spectra(v, freqs, gate)
+    s = np.asarray(sines, dtype=np.float64)
+    b = _out_grid(s, dim, 2 * q_out) if out_sines is None else np.asarray(out_sines, dtype=np.float64)
+    k = 2 * np.pi * np.asarray(freqs, dtype=np.float64) / c0
+    el = np.asarray(elements, dtype=np.float64)[:, :2]
+    ph = b @ el.T  # (N_b, N_u)
+    p = np.zeros((b.shape[0], s.shape[0]))
+    n_a = s.shape[0]
+    # index of −a in b
+    ret = np.array([int(np.argmin(np.linalg.norm(b + a[None, :], axis=1))) for a in s])
+    exact = np.allclose(b[ret], -s, atol=1e-9)
+    qq = np.zeros((n_a, n_a), dtype=np.complex128)
+    cos_a = np.sqrt(1.0 - s[:, 0] ** 2 - s[:, 1] ** 2)
+    num = 0.0 + 0.0j
+    den = 0.0
+    for m in range(k.size):
+        proj = np.exp(1j * k[m] * ph).astype(np.complex64)
+        r = np.matmul(proj[None], v[:, m])  # (n_real, N_b, N_θ)
+        p += np.sum(np.abs(r) ** 2, axis=0)
+        if exact:
+            qq = r[:, ret, :] / cos_a[None, None, :]
+            off = ~np.eye(n_a, dtype=bool)
+            num += np.sum((qq * np.conj(np.swapaxes(qq, 1, 2)))[:, off])
+            den += float(np.sum(np.abs(qq[:, off]) ** 2))
+    q = np.linalg.norm(b[:, None, :] + s[None, :, :], axis=2)  # (N_b, N_θ)
+    outside = q > q_out
+    e_out = np.array([p[i, outside[i]].mean() if outside[i].any() else np.nan for i in range(b.shape[0])])
+    ratio = p / e_out[:, None]
+    e_in = np.array([np.nanmean(ratio[outside[:, j], j]) for j in range(n_a)])
+    pn = ratio / e_in[None, :]
+    bw = bin_width if bin_width is not None else float(np.min(np.diff(np.unique(np.round(b[:, 0], 12)))))
+    edges = np.arange(0.0, q.max() + bw, bw) + 0.5 * bw
+    edges = np.concatenate([[0.0], edges])
+    centres, profile = [], []
+    valid = np.isfinite(pn)
+    for lo_, hi_ in zip(edges[:-1], edges[1:], strict=True):
+        sel = valid & (q >= lo_) & (q < hi_)
+        if sel.any():
+            centres.append(float(q[sel].mean()))
+            profile.append(float(pn[sel].mean()))
+    base = float(np.nanmean(pn[valid & outside]))
+    prof = np.array(profile) / base
+    peak = float(np.nanmean(pn[ret, np.arange(n_a)]) / base)
+    rec = float(abs(num) / den) if exact and den > 0 else float("nan")
+    return {"enhancement": peak, "q": np.array(centres), "profile": prof, "reciprocity": rec}
+
+
+def confocal_background(
+    v: np.ndarray,
+    freqs: np.ndarray,
+    elements: np.ndarray,
+    sines: np.ndarray,
+    c0: float,
+    dim: int,
+    points: np.ndarray,
+    band: Band | None = None,
+) -> np.ndarray:
+    """Confocal intensity ⟨|B(r)|²⟩ over realisations at `points` (N_p, 3), by delay-and-sum in the element
+    basis, B(r) = Σ_{f,u,θ} w(f) V(f, u, θ) e^{+ik(|u − r| + a_θ·ρ + c_θ z)} — the focusing phase of
+    docs/design.md §4.3 (paper eq. confocal, Supplementary S4 eq. mean_intensity) without apodization.
+    Returns (N_p,)."""
+    v = _check(v, freqs)
+    w = spectral_weight(freqs, band)
+    k = 2 * np.pi * np.asarray(freqs, dtype=np.float64) / c0
+    pts = np.asarray(points, dtype=np.float64)
+    el = np.asarray(elements, dtype=np.float64)
+    if dim == 2:
+        d_out = np.hypot(pts[:, None, 0] - el[None, :, 0], pts[:, None, 2] - el[None, :, 2])
+    else:
+        d_out = np.linalg.norm(pts[:, None, :] - el[None, :, :], axis=2)
+    s = np.asarray(sines, dtype=np.float64)
+    c = np.sqrt(1.0 - s[:, 0] ** 2 - s[:, 1] ** 2)
+    d_in = pts[:, :2] @ s.T + pts[:, 2:3] * c[None, :]  # (N_p, N_θ)
+    acc = np.zeros((v.shape[0], pts.shape[0]), dtype=np.complex128)
+    for m in range(k.size):
+        e_out = np.exp(1j * k[m] * d_out).astype(np.complex64)
+        e_in = (w[m] * np.exp(1j * k[m] * d_in)).astype(np.complex64)
+        y = np.matmul(e_out[None], v[:, m])  # (n_real, N_p, N_θ)
+        acc += np.sum(y * e_in[None], axis=2)
+    return np.mean(np.abs(acc) ** 2, axis=0)
+
+
+def confocal_contrast_slope(
+    v: np.ndarray,
+    freqs: np.ndarray,
+    elements: np.ndarray,
+    sines: np.ndarray,
+    c0: float,
+    dim: int,
+    depths: np.ndarray,
+    echo: np.ndarray,
+    fit: tuple[float, float],
+    half_width: float,
+    n_lateral: int = 9,
+    band: Band | None = None,
+) -> dict[str, np.ndarray | float]:
+    """d ln C_I/dz with C_I(z) = echo(z)/I_M(z) (paper main text eq. ball, Supplementary S4 eq. contrast_confocal).
+
+    echo(z): confocal intensity of a reference point reflector at depth z seen through the medium (any
+    scale), e.g. |⟨ψ⟩(z)|⁴ from the coherent wave (paper S1) or the model's e^{−2z/ℓ_ext};
+    I_M(z): the background's confocal intensity (`confocal_background`) averaged over `n_lateral` points
+    evenly spread in |x| ≤ half_width (and y = 0) at each depth. The slope is the least-squares line of
+    ln C_I over the depths within `fit` = (z1, z2) (m, absolute depths below the array); the paper's law
+    C_I ∝ e^{−z/ℓ_s} gives slope = −1/ℓ_s. Returns slope (1/m), depths, ci, background, echo.
+    """
+    z = np.asarray(depths, dtype=np.float64)
+    e = np.asarray(echo, dtype=np.float64)
+    if e.shape != z.shape:
+        raise ValueError(f"echo: expected one value per depth ({z.size}), got shape {e.shape}")
+    x = np.linspace(-half_width, half_width, n_lateral)
+    xx, zz = np.meshgrid(x, z, indexing="ij")
+    pts = np.stack([xx.ravel(), np.zeros(xx.size), zz.ravel()], axis=1)
+    bg = confocal_background(v, freqs, elements, sines, c0, dim, pts, band).reshape(x.size, z.size).mean(axis=0)
+    ci = e / bg
+    sel = (z >= fit[0]) & (z <= fit[1])
+    if sel.sum() < 3:
+        raise ValueError(f"fit: expected at least 3 depths in {fit}, got {int(sel.sum())}")
+    slope = float(np.polyfit(z[sel], np.log(ci[sel]), 1)[0])
+    return {"slope": slope, "depths": z, "ci": ci, "background": bg, "echo": e}
