@@ -1,0 +1,289 @@
+"""Statistical multiple-scattering background (fpcore.simulate.medium) vs exact Foldy–Lax (issue 12).
+
+    .venv/bin/python bench/validate_background.py                 # 2D (runs the FL reference if not cached)
+    .venv/bin/python bench/validate_background.py --dim both
+    .venv/bin/python bench/validate_background.py --dim 3 --quick
+    .venv/bin/python bench/validate_background.py --layer ls_exponent=-1 --layer cbs=True   # model options
+
+The Foldy–Lax reference (bench/foldy_lax_reference.py, cached in out/bench/) and the model are built
+for the same geometry: array, finite-aperture plane-wave transmits, band, time window, a scattering
+medium from z_surface down (FL: a slab; model: a half-space) with ℓ_s(f_c) = 1.8 mm, lossless, index-
+matched (no interface echo), frozen (frame_displacement 0). The four agreement figures of the issue,
+measured with bench/background_metrics.py on both, side by side:
+
+1. time envelope ⟨r²⟩(t): max |model/FL| in dB over the record, from the surface echo + 1 µs to the
+   window end (issue: within ±3 dB);
+2. frequency-correlation half-width over the same gate: model/FL (within 30 %);
+3. coherent-backscattering enhancement after the surface echo + 5 µs (about 2: pass if 1.7–2.3);
+4. confocal contrast slope −d ln C_I/dz times ℓ_s(f_c), fitted from 1 ℓ_s to 5 ℓ_s below the surface
+   (or 1.5 ℓ_s above the slab's bottom if shallower) (1 within 20 %).
+Writes out/bench/validate_background.png (rows: dimensions; columns: the four figures).
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import background_metrics as bm  # noqa: E402
+import foldy_lax_reference as flr  # noqa: E402
+
+from fpcore.simulate.medium import DiffuseBackground, ScatteringLayer  # noqa: E402
+
+
+def transmit_sines(dim: int) -> np.ndarray:
+    """2D: 21 sines in ±0.3; 3D: 7 × 7 in ±0.3 (x fastest)."""
+    if dim == 2:
+        s = np.linspace(-0.3, 0.3, 21)
+        return np.stack([s, np.zeros_like(s)], axis=1)
+    s = np.linspace(-0.3, 0.3, 7)
+    yy, xx = np.meshgrid(s, s, indexing="ij")
+    return np.stack([xx.ravel(), yy.ravel()], axis=1)
+
+
+def model_realisations(
+    s: flr.Setup, sines: np.ndarray, n_real: int, layer_kw: dict[str, Any], seed0: int = 1000
+) -> np.ndarray:
+    """V (n_real, N_f, N_u, N_θ) from the public model API, one independent rng per realisation."""
+    layer = ScatteringLayer(
+        z_surface=s.z_surface,
+        ls=s.ls_c,
+        la=np.inf,
+        density=1000.0,
+        sound_speed=1500.0,
+        frame_displacement=0.0,
+        **layer_kw,
+    )
+    out = []
+    for r in range(n_real):
+        bg = DiffuseBackground(
+            layer,
+            s.elements(),
+            sines,
+            s.window,
+            s.band,
+            s.c0,
+            s.dim,
+            s.aperture_radius,
+            np.random.default_rng(seed0 + r),
+        )
+        out.append(bg.next())
+    return np.stack(out)
+
+
+def model_echo(s: flr.Setup, depths: np.ndarray, freqs: np.ndarray, layer_kw: dict[str, Any]) -> np.ndarray:
+    """Reference-reflector echo under the model's extinction: (Σ_f S(f) e^{−(z − z_s)/ℓ_ext(f)})² (two legs)."""
+    layer = ScatteringLayer(z_surface=s.z_surface, ls=s.ls_c, la=np.inf, **layer_kw)
+    ls_f = np.asarray(layer.ls_at(freqs)) if hasattr(layer, "ls_at") else np.full(freqs.size, layer.ls)
+    ls_f = np.broadcast_to(ls_f, freqs.shape)
+    lext = 1.0 / (1.0 / ls_f + 1.0 / layer.la)
+    depth = np.maximum(depths - s.z_surface, 0.0)
+    w = s.band.spectrum(freqs)
+    return (np.exp(-depth[:, None] / lext[None, :]) @ w) ** 2 / w.sum() ** 2
+
+
+def fl_echo(data: dict[str, np.ndarray], freqs: np.ndarray, band: flr.Band) -> np.ndarray:
+    """(Σ_f S(f) |⟨T⟩(z, f)|²)² — the coherent wave both ways (|⟨ψ⟩|⁴, paper S1), band-summed."""
+    tbar = data["T"].mean(axis=0)  # (N_f, N_z)
+    w = band.spectrum(freqs)
+    return (w @ np.abs(tbar) ** 2) ** 2 / w.sum() ** 2
+
+
+def measure(
+    v: np.ndarray, s: flr.Setup, sines: np.ndarray, freqs: np.ndarray, depths: np.ndarray, echo: np.ndarray
+) -> dict[str, Any]:
+    t_on = 2 * s.z_surface / s.c0
+    t, env = bm.time_envelope(v, freqs, s.band)
+    fc = bm.frequency_correlation_width(v, freqs, gate=(t_on, s.t_end))
+    cbs = bm.cbs_enhancement(v, freqs, s.elements(), sines, s.c0, s.dim, gate=(t_on + 5e-6, s.t_end))
+    z_fit = (s.z_surface + s.ls_c, s.z_surface + min(5 * s.ls_c, s.thickness - 1.5 * s.ls_c))
+    ci = bm.confocal_contrast_slope(
+        v, freqs, s.elements(), sines, s.c0, s.dim, depths, echo, z_fit, 0.5 * s.aperture_radius, band=s.band
+    )
+    return {"t": t, "env": env, "fc": fc, "cbs": cbs, "ci": ci, "z_fit": z_fit}
+
+
+def compare(dim: int, quick: bool, n_model: int | None, layer_kw: dict[str, Any]) -> dict[str, Any]:
+    path = flr.default_path(dim, quick)
+    if not path.exists():
+        print(f"{path} missing: running the Foldy–Lax reference")
+        flr.run(flr.setup_for(dim, quick), path)
+    s, data = flr.load(path)
+    freqs = data["freqs"]
+    if not np.allclose(freqs, s.freqs()):
+        raise SystemExit(f"{path}: frequencies differ from the setup's window (stale cache? delete it)")
+    sines = transmit_sines(dim)
+    t0 = time.perf_counter()
+    v_fl = flr.plane_waves(data["K"], freqs, s.elements(), sines, s.c0, s.pitch, dim)
+    n_m = n_model or (24 if dim == 2 else 8)
+    t1 = time.perf_counter()
+    v_mod = model_realisations(s, sines, n_m, layer_kw)
+    t_model = time.perf_counter() - t1
+    depths = data["depths"]
+    fl = measure(v_fl, s, sines, freqs, depths, fl_echo(data, freqs, s.band))
+    mod = measure(v_mod, s, sines, freqs, depths, model_echo(s, depths, freqs, layer_kw))
+    # ℓ_s of the FL medium from its coherent wave at f_c (sanity: input 1.8 mm)
+    m_c = int(np.argmin(np.abs(freqs - s.f_c)))
+    tb = np.abs(data["T"].mean(axis=0)[m_c])
+    sel = (depths > s.z_surface + 0.5e-3) & (depths < s.z_surface + s.thickness - 0.5e-3)
+    ls_meas = -0.5 / np.polyfit(depths[sel], np.log(tb[sel]), 1)[0]
+    return {
+        "setup": s,
+        "data": data,
+        "fl": fl,
+        "model": mod,
+        "ls_meas": ls_meas,
+        "n_model": n_m,
+        "t_model": t_model,
+        "t_all": time.perf_counter() - t0,
+    }
+
+
+def figures(res: dict[str, Any]) -> list[tuple[str, float, float, str, bool]]:
+    """(name, FL, model, criterion, pass) rows."""
+    s: flr.Setup = res["setup"]
+    fl, mod = res["fl"], res["model"]
+    t = fl["t"]
+    rec = (t >= 2 * s.z_surface / s.c0 + 1e-6) & (t <= s.t_end)
+    db = 10 * np.log10(mod["env"][rec] / fl["env"][rec])
+    dev = float(db[np.argmax(np.abs(db))])
+    w_fl, w_mod = float(fl["fc"]["width"]), float(mod["fc"]["width"])
+    e_fl, e_mod = float(fl["cbs"]["enhancement"]), float(mod["cbs"]["enhancement"])
+    k_fl, k_mod = -fl["ci"]["slope"] * s.ls_c, -mod["ci"]["slope"] * s.ls_c
+    return [
+        ("time envelope: max model/FL (dB)", 0.0, dev, "|dev| <= 3 dB", abs(dev) <= 3.0),
+        ("freq. corr. half-width (kHz)", w_fl / 1e3, w_mod / 1e3, "ratio within 30 %", abs(w_mod / w_fl - 1) <= 0.3),
+        ("CBS enhancement", e_fl, e_mod, "1.7-2.3", 1.7 <= e_mod <= 2.3),
+        ("-dlnC_I/dz x l_s", k_fl, k_mod, "1 within 20 %", abs(k_mod - 1) <= 0.2),
+    ]
+
+
+def report(res: dict[str, Any]) -> None:
+    s: flr.Setup = res["setup"]
+    d = res["data"]
+    lam = s.c0 / s.f_c
+    print(
+        f"\n== {s.dim}D: FL {s.n_real} realisations, N = {d['n_scatterers'].tolist()} scatterers, n = {s.density:.4g} "
+        f"m^-{s.dim}, slab {s.width * 1e3:.0f} mm × {s.thickness * 1e3:.1f} mm ({s.thickness / s.ls_c:.1f} ℓ_s) from "
+        f"z = {s.z_surface * 1e3:.0f} mm; ℓ_s(f_c) = {s.ls_c * 1e3:.2f} mm (ℓ_s/λ = {s.ls_c / lam:.2f}), measured from "
+        f"⟨ψ⟩: {res['ls_meas'] * 1e3:.2f} mm; {d['freqs'].size} frequencies; model {res['n_model']} realisations "
+        f"({res['t_model']:.1f} s)"
+    )
+    print(f"  {'figure':34s} {'FL':>9s} {'model':>9s}  criterion (model)")
+    for name, a, b, crit, ok in figures(res):
+        print(f"  {name:34s} {a:9.3g} {b:9.3g}  {crit:18s} {'PASS' if ok else 'FAIL'}")
+    fl, mod = res["fl"], res["model"]
+    print(
+        f"  reciprocity (plane-wave Q vs Q^T): FL {fl['cbs']['reciprocity']:.3f}, "
+        f"model {mod['cbs']['reciprocity']:.3f}; "
+        f"contrast fit over z = {res['fl']['z_fit'][0] * 1e3:.1f}-{res['fl']['z_fit'][1] * 1e3:.1f} mm"
+    )
+
+
+def plot(results: list[dict[str, Any]], png: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axs = plt.subplots(len(results), 4, figsize=(18, 4.2 * len(results)), squeeze=False)
+    for row, res in zip(axs, results, strict=True):
+        s: flr.Setup = res["setup"]
+        for key, style, label in (("fl", "k-", "Foldy–Lax"), ("model", "r--", "model")):
+            m = res[key]
+            row[0].plot(m["t"] * 1e6, 10 * np.log10(np.maximum(m["env"], 1e-30)), style, label=label)
+            row[1].plot(
+                m["fc"]["dfs"] / 1e3, m["fc"]["corr"], style, label=f"{label}: {m['fc']['width'] / 1e3:.0f} kHz"
+            )
+            row[2].plot(
+                m["cbs"]["q"], m["cbs"]["profile"], style + "o", ms=3, label=f"{label}: {m['cbs']['enhancement']:.2f}"
+            )
+            ci = m["ci"]
+            z = (ci["depths"] - s.z_surface) / s.ls_c
+            row[3].plot(z, np.log(ci["ci"] / ci["ci"][0]), style, label=f"{label}: {-ci['slope'] * s.ls_c:.2f}/ℓ_s")
+        row[0].set(xlabel="t (µs)", ylabel="⟨r²⟩ (dB re pulse peak²)", title=f"{s.dim}D time envelope")
+        t_on = 2 * s.z_surface / s.c0 * 1e6
+        row[0].set_xlim(0, s.t_end * 1e6 + 10)
+        ymax = 10 * np.log10(res["fl"]["env"].max())
+        row[0].set_ylim(ymax - 70, ymax + 5)
+        row[0].axvline(t_on, color="0.6", lw=0.8)
+        row[1].axhline(0.5, color="0.6", lw=0.8)
+        row[1].set(xlabel="Δf (kHz)", ylabel="|C(Δf)|", title="frequency correlation", xlim=(0, 300))
+        row[2].axhline(1.0, color="0.6", lw=0.8)
+        row[2].set(xlabel="|b + a| (sine)", ylabel="⟨|R|²⟩ / envelope", title="coherent backscattering")
+        zf = [(zz - s.z_surface) / s.ls_c for zz in res["fl"]["z_fit"]]
+        row[3].axvspan(*zf, color="0.9")
+        zz = np.linspace(0, s.thickness / s.ls_c, 2)
+        row[3].plot(zz, -zz, ":", color="0.4", label="e^{-z/ℓ_s}")
+        row[3].set(xlabel="(z − z_s)/ℓ_s", ylabel="ln C_I (normalised)", title="confocal contrast")
+        for ax in row:
+            ax.legend(fontsize=8)
+            ax.grid(alpha=0.3)
+    fig.tight_layout()
+    png.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(png, dpi=90)
+
+
+def parse_layer(items: list[str]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for it in items:
+        key, sep, val = it.partition("=")
+        if not sep or not key.isidentifier():
+            raise ValueError(f"--layer: expected KEY=VALUE (a ScatteringLayer field), got {it!r}")
+        try:
+            out[key] = ast.literal_eval(val)
+        except (ValueError, SyntaxError):
+            out[key] = val
+    return out
+
+
+def model_commit() -> str:
+    try:
+        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True)
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "fpcore/simulate"], capture_output=True, text=True, check=True
+        )
+        return rev.stdout.strip() + (" + uncommitted fpcore/simulate changes" if dirty.stdout.strip() else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--dim", choices=("2", "3", "both"), default="2")
+    ap.add_argument("--quick", action="store_true", help="use (or make) the quick FL references")
+    ap.add_argument("--model-realisations", type=int, default=None, help="default 24 (2D), 8 (3D)")
+    ap.add_argument("--layer", action="append", default=[], help="extra ScatteringLayer field KEY=VALUE")
+    ap.add_argument("--png", default="out/bench/validate_background.png")
+    args = ap.parse_args(argv)
+    try:
+        layer_kw = parse_layer(args.layer)
+        ScatteringLayer(z_surface=5e-3, ls=1.8e-3, **layer_kw)
+    except (TypeError, ValueError) as exc:
+        print(f"--layer: {exc}", file=sys.stderr)
+        return 2
+    if args.model_realisations is not None and args.model_realisations < 1:
+        print(f"--model-realisations: expected an integer >= 1, got {args.model_realisations}", file=sys.stderr)
+        return 2
+    print(f"model: fpcore.simulate.medium at {model_commit()}; layer options {layer_kw or 'none (defaults)'}")
+    results = []
+    for dim in (2, 3) if args.dim == "both" else (int(args.dim),):
+        res = compare(dim, args.quick, args.model_realisations, layer_kw)
+        report(res)
+        results.append(res)
+    plot(results, Path(args.png))
+    print(f"\nwrote {args.png}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
