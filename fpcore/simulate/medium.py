@@ -52,13 +52,11 @@ Physics (paper Supplementary S1, S4; docs/design.md §6):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
-import scipy.fft as sfft
 
 from ..geometry import cosines
-from .waves import Band, TimeWindow
 
 __all__ = ["ScatteringLayer", "DiffuseBackground"]
 
@@ -84,8 +82,17 @@ class ScatteringLayer:
     gain: float = 1.0
     attenuation_depth: str = "centre"
     roughness: float = 0.0
+    ls_exponent: float = 0.0
+    f_ref: float = 0.0
+    f_cross: float = 0.0
+    single_scattering: str = "envelope"
+    cbs: bool = False
 
     def __post_init__(self) -> None:
+        if self.single_scattering not in ("envelope", "field"):
+            raise ValueError(f"single_scattering: expected 'envelope' or 'field', got {self.single_scattering!r}")
+        if self.ls_exponent != 0.0 and not self.f_ref > 0:
+            raise ValueError("f_ref: expected the frequency (Hz, > 0) at which ls is given when ls_exponent ≠ 0")
         if self.envelope not in ("escape", "diffusion"):
             raise ValueError(f"envelope: expected 'escape' or 'diffusion', got {self.envelope!r}")
         if self.attenuation_depth not in ("centre", "front"):
@@ -95,8 +102,29 @@ class ScatteringLayer:
 
     @property
     def l_ext(self) -> float:
-        """ℓ_ext = (1/ℓ_s + 1/ℓ_a)^{-1} (Supplementary S1, eq. ls)."""
+        """ℓ_ext = (1/ℓ_s + 1/ℓ_a)^{-1} (Supplementary S1, eq. ls) at the reference frequency."""
         return 1.0 / (1.0 / self.ls + 1.0 / self.la)
+
+    def ls_at(self, f: np.ndarray | float) -> np.ndarray:
+        """ℓ_s(f) = ℓ_s h(f)/h(f_ref) (ℓ_s given at f_ref). Without a crossover, h(f) = f^(−p), p = ls_exponent:
+        p = 4 is the Rayleigh law that Supplementary S1 measures at low frequency (k a ≪ 1). With f_cross > 0,
+        h(f) = 1 + (f_cross/f)^p: Rayleigh below f_cross, saturating towards a geometric (frequency-
+        independent) cross-section above it, where the scatterers' k a passes 1 (docs/design.md §6.3)."""
+        f = np.asarray(f, dtype=np.float64)
+        if self.ls_exponent == 0.0:
+            return np.full(f.shape, self.ls)
+        p = self.ls_exponent
+        if self.f_cross > 0:
+            return self.ls * (1 + (self.f_cross / f) ** p) / (1 + (self.f_cross / self.f_ref) ** p)
+        return self.ls * (f / self.f_ref) ** (-p)
+
+    def l_ext_at(self, f: np.ndarray | float) -> np.ndarray:
+        """ℓ_ext(f) = (1/ℓ_s(f) + 1/ℓ_a)^{-1} (Supplementary S1, eq. ls; ℓ_a independent of f, as there)."""
+        return 1.0 / (1.0 / self.ls_at(f) + 1.0 / self.la)
+
+    def at_frequency(self, f: float) -> ScatteringLayer:
+        """This layer with ℓ_s fixed at its value at f (a sub-band of a dispersive medium)."""
+        return replace(self, ls=float(self.ls_at(f)), ls_exponent=0.0)
 
     def reflection(self, rho0: float = 1000.0, c0: float = 1500.0) -> float:
         z0, z1 = rho0 * c0, self.density * self.sound_speed
@@ -109,16 +137,21 @@ class ScatteringLayer:
             r[2] -= 0.5 * diameter
         return r
 
-    def attenuation_in(self, ref: np.ndarray, sines: np.ndarray) -> np.ndarray:
-        """exp(−L_in/(2ℓ_ext)) per transmit, L_in = (z − z_s)/c_θ (N_θ,)."""
-        depth = max(0.0, float(ref[2]) - self.z_surface)
-        return np.exp(-depth / cosines(sines) / (2 * self.l_ext))
+    def _l_ext(self, freqs: np.ndarray | None) -> np.ndarray:
+        return np.array(self.l_ext) if freqs is None else self.l_ext_at(freqs)[:, None]
 
-    def attenuation_out(self, ref: np.ndarray, elements: np.ndarray) -> np.ndarray:
-        """exp(−L_out/(2ℓ_ext)) per element, L_out = part of the straight ray below z_s (N_u,)."""
+    def attenuation_in(self, ref: np.ndarray, sines: np.ndarray, freqs: np.ndarray | None = None) -> np.ndarray:
+        """exp(−L_in/(2ℓ_ext)) per transmit, L_in = (z − z_s)/c_θ: (N_θ,), or (N_f, N_θ) with ℓ_ext(f)."""
+        depth = max(0.0, float(ref[2]) - self.z_surface)
+        out = np.exp(-depth / cosines(sines)[None, :] / (2 * self._l_ext(freqs)))
+        return out[0] if freqs is None else out
+
+    def attenuation_out(self, ref: np.ndarray, elements: np.ndarray, freqs: np.ndarray | None = None) -> np.ndarray:
+        """exp(−L_out/(2ℓ_ext)) per element, L_out = part of the straight ray below z_s: (N_u,) or (N_f, N_u)."""
         depth = max(0.0, float(ref[2]) - self.z_surface)
         dist = np.linalg.norm(np.asarray(elements, float) - np.asarray(ref, float)[None, :], axis=1)
-        return np.exp(-dist * depth / max(float(ref[2]), 1e-12) / (2 * self.l_ext))
+        out = np.exp(-dist[None, :] * depth / max(float(ref[2]), 1e-12) / (2 * self._l_ext(freqs)))
+        return out[0] if freqs is None else out
 
     def attenuate(
         self,
@@ -129,14 +162,20 @@ class ScatteringLayer:
         sines: np.ndarray,
         rho0: float = 1000.0,
         c0: float = 1500.0,
+        freqs: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Apply both legs and the interface transmission 1 − R² to a target's H (N_f, N_u, N_θ)."""
+        """Apply both legs and the interface transmission 1 − R² to a target's H (N_f, N_u, N_θ); with
+        `freqs`, each frequency with its own ℓ_ext(f) (the ballistic echo's spectral filtering, S1)."""
         ref = self.reference_point(position, diameter)
         if ref[2] <= self.z_surface:
             return h
-        w = np.outer(self.attenuation_out(ref, elements), self.attenuation_in(ref, sines))
-        w *= 1.0 - self.reflection(rho0, c0) ** 2
-        return h * w.astype(np.float32)[None, :, :]
+        t_r = np.float32(1.0 - self.reflection(rho0, c0) ** 2)
+        if freqs is None:
+            w = np.outer(self.attenuation_out(ref, elements), self.attenuation_in(ref, sines)) * t_r
+            return h * w.astype(np.float32)[None, :, :]
+        w_out = self.attenuation_out(ref, elements, freqs).astype(np.float32)
+        w_in = self.attenuation_in(ref, sines, freqs).astype(np.float32)
+        return h * (w_out[:, :, None] * w_in[:, None, :] * t_r)
 
     # -- interface --------------------------------------------------------------------------------
     def interface_echo(
@@ -150,13 +189,18 @@ class ScatteringLayer:
         return (r[:, None, :] * np.exp(-1j * k[:, None, None] * path[None, :, :])).astype(np.complex64)
 
     # -- multiple-scattering envelope -------------------------------------------------------------
-    def reflectance_density(self, s: np.ndarray) -> np.ndarray:
-        """ρ(s) per unit path length (1/m) of the multiply scattered flux (module doc)."""
+    def reflectance_density(self, s: np.ndarray, orders_from: int = 1) -> np.ndarray:
+        """ρ(s) per unit path length (1/m) of the multiply scattered flux (module doc); orders_from=2
+        drops the single-scattering order (escape: its n = 1 term e^{−s/ℓ_s}/(2ℓ_s); diffusion: the
+        approximation has no separate first order and is kept whole)."""
         s = np.maximum(np.asarray(s, dtype=np.float64), 0.0)
         ls, la = self.ls, self.la
         absorb = np.exp(-s / la)
         if self.envelope == "escape":
-            return np.exp(-s / (2 * ls)) * absorb / (2 * ls)
+            rho = np.exp(-s / (2 * ls)) * absorb / (2 * ls)
+            if orders_from >= 2:
+                rho = rho - np.exp(-s / ls) * absorb / (2 * ls)
+            return rho
         z1 = ls * (1 + 2.0 / 3.0)
         dp = ls / 3.0
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -167,7 +211,7 @@ class ScatteringLayer:
         return aperture_radius**2 + 4 * (self.ls / 3.0) * np.maximum(s, 0.0)
 
     def intensity(
-        self, tau: np.ndarray, c0: float, aperture_radius: float, dim: int, pulse_energy: float
+        self, tau: np.ndarray, c0: float, aperture_radius: float, dim: int, pulse_energy: float, orders_from: int = 1
     ) -> np.ndarray:
         """⟨M(t)²⟩ (relative to the incident pulse peak²) τ = t − t_on after the surface echo."""
         v = c0 if self.energy_velocity is None else self.energy_velocity
@@ -185,7 +229,7 @@ class ScatteringLayer:
                 lateral = np.where(spread > 0, erf(aperture_radius / np.sqrt(np.maximum(spread, 1e-30))), 1.0)
                 reception = np.arccos(cos_d)
         t_r = 1.0 - self.reflection() ** 2
-        out = self.gain * reception * self.reflectance_density(s) * v * pulse_energy * lateral * t_r**2
+        out = self.gain * reception * self.reflectance_density(s, orders_from) * v * pulse_energy * lateral * t_r**2
         return np.where(np.asarray(tau) > 0, out, 0.0)
 
     def correlation_per_frame(self, tau: np.ndarray, c0: float, f_c: float) -> np.ndarray:
@@ -195,165 +239,10 @@ class ScatteringLayer:
         kc = 2 * np.pi * f_c / c0
         return np.exp(-(s / self.ls) * kc**2 * self.frame_displacement**2 / 3.0)
 
+    def correlation_single(self, c0: float, f_c: float) -> float:
+        """g₁ between frames of a single-scattering echo: exp(−(2k)²⟨Δr²⟩/6) (3D Brownian step)."""
+        kc = 2 * np.pi * f_c / c0
+        return float(np.exp(-((2 * kc) ** 2) * self.frame_displacement**2 / 6.0))
 
-class DiffuseBackground:
-    """Frame generator of the multiple-scattering spectrum V(f, u, θ) (dimensionless, like a target's H).
 
-    The field is built as upgoing plane waves leaving the suspension (module doc), one random
-    amplitude A(o, θ, t) per output direction s_o (|s_o| ≲ s_d, on a grid whose spatial period
-    λ_min/Δs exceeds the aperture) and transmit θ. A plane wave o launched by transmit θ that spent a
-    time τ in the medium arrives at the array at t = z_s (c_θ + c_o)/c0 + τ (lateral phases referred to
-    the array centre), so its age — and the envelope √⟨M²⟩(τ) it carries — depends on its direction:
-    energy arriving obliquely at a given time is younger. This keeps the confocal mapping
-    (time, angle) → depth consistent with the age of the diffuse wave.
-
-    Construction per frame: complex white noise ξ(o, θ, t_n) on a baseband time grid (spacing
-    Δ = period/n_bb, E|ξ|² = 1/Δ, i.e. unit spectral density), multiplied by the envelope, Fourier
-    transformed onto the band bins, and projected to the elements, M(u, θ, f) = Σ_o w_o A e^{−ik s_o·u}
-    (taper w_o, Σ w_o² = 1). Frames evolve by ξ_n = g₁ ξ_{n−1} + √(1 − g₁²) ξ'_n with g₁(τ) (DWS).
-    The RF background is S(f)·V(f); it is statistically independent of every target.
-    """
-
-    def __init__(
-        self,
-        layer: ScatteringLayer,
-        elements: np.ndarray,
-        sines: np.ndarray,
-        window: TimeWindow,
-        band: Band,
-        c0: float,
-        dim: int,
-        aperture_radius: float,
-        rng: np.random.Generator,
-    ) -> None:
-        self.layer, self.window, self.band, self.c0, self.dim = layer, window, band, c0, dim
-        self.rng = rng
-        self.bins = window.band_bins(band)
-        self.freqs = window.freqs()[self.bins]
-        el = np.asarray(elements, dtype=np.float64)
-        s = np.asarray(sines, dtype=np.float64)
-        self.n_u, self.n_i = el.shape[0], s.shape[0]
-        self.elements = el
-        n_f = self.bins.size
-        self.n_bb = int(sfft.next_fast_len(2 * n_f))
-        self.dt = window.period / self.n_bb
-        v = c0 if layer.energy_velocity is None else layer.energy_velocity
-        # Angular spread of the halo seen from the array at the middle of the window.
-        mid = window.t0 + 0.5 * window.duration - 2 * layer.z_surface / c0
-        b = float(np.sqrt(layer.halo_radius2(np.array(max(mid, 0.0) * v), aperture_radius)))
-        self.s_d = b / np.hypot(b, layer.z_surface)
-        # Direction grid: spatial period λ_min/Δs ≥ 1.2 × the array extent.
-        span = np.ptp(el[:, :2], axis=0) + 1e-12
-        lam_min = c0 / band.support[1]
-        s_cut = min(1.15 * self.s_d, 0.98)
-        axes = []
-        for d in range(2 if dim == 3 else 1):
-            ds = lam_min / (1.2 * max(span[d], lam_min))
-            m = int(np.floor(s_cut / ds))
-            axes.append(np.arange(-m, m + 1) * ds)
-        if dim == 3:
-            sx, sy = np.meshgrid(axes[0], axes[1], indexing="ij")
-            so = np.stack([sx.ravel(), sy.ravel()], axis=1)
-        else:
-            so = np.stack([axes[0], np.zeros_like(axes[0])], axis=1)
-        smag = np.hypot(so[:, 0], so[:, 1])
-        keep = smag < s_cut
-        self.s_out = so[keep]
-        self._axes = axes
-        self._keep = keep
-        self._grid = self._element_grid(el) if dim == 3 else None
-        x = np.clip((smag[keep] / self.s_d - 0.85) / 0.3, 0.0, 1.0)
-        w = 0.5 + 0.5 * np.cos(np.pi * x)
-        self.weights = (w / np.sqrt(np.sum(w**2))).astype(np.float32)
-        self.n_o = self.s_out.shape[0]
-        c_o = cosines(self.s_out)
-        t = window.t0 + np.arange(self.n_bb) * self.dt
-        t_on = layer.z_surface * (cosines(s)[None, :] + c_o[:, None]) / c0  # (N_o, N_θ)
-        tau = (t[None, None, :] - t_on[:, :, None]).astype(np.float32)
-        # ⟨M²⟩ per unit pulse energy: unit-density white noise shaped by this envelope and filtered by
-        # S(f) has variance envelope² · E_s = ⟨M²⟩. Tabulated in τ, then interpolated.
-        tab = np.linspace(0.0, max(float(tau.max()), 1e-9), 4096)
-        rate = layer.intensity(tab, c0, aperture_radius, dim, pulse_energy=1.0)
-        self.envelope = np.interp(tau, tab, np.sqrt(rate), left=0.0).astype(np.float32)
-        self.g1 = (
-            np.interp(tau, tab, layer.correlation_per_frame(tab, c0, band.centre)).astype(np.float32)
-            if layer.frame_displacement > 0
-            else None
-        )
-        self.state: np.ndarray | None = None
-        self._frozen: np.ndarray | None = None
-        self._phase = np.exp(-2j * np.pi * self.freqs * window.t0).astype(np.complex64)
-
-    def _noise(self) -> np.ndarray:
-        shape = (self.n_o, self.n_i, self.n_bb)
-        sig = np.float32(np.sqrt(0.5 / self.dt))
-        xi = self.rng.standard_normal(shape, dtype=np.float32) * sig
-        out = np.empty(shape, dtype=np.complex64)
-        out.real = xi
-        out.imag = self.rng.standard_normal(shape, dtype=np.float32) * sig
-        return out
-
-    @staticmethod
-    def _element_grid(el: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """(x, y) axes if the elements form a full x-fastest grid (separable projection), else None."""
-        xs, ys = np.unique(el[:, 0]), np.unique(el[:, 1])
-        if xs.size * ys.size != el.shape[0]:
-            return None
-        yy, xx = np.meshgrid(ys, xs, indexing="ij")
-        if np.allclose(el[:, 0], xx.ravel()) and np.allclose(el[:, 1], yy.ravel()):
-            return xs, ys
-        return None
-
-    def _project(self, a: np.ndarray) -> np.ndarray:
-        """M(f, u, θ) = Σ_o w_o A(o, θ, f) e^{−ik s_o·u} for A (N_o, N_θ, N_f).
-
-        Separable (x then y) for a regular matrix array, by frequency recursion otherwise.
-        """
-        k = 2 * np.pi * self.freqs / self.c0
-        n_f = self.freqs.size
-        aw = a * self.weights[:, None, None]
-        if self._grid is not None:
-            ux, uy = self._grid
-            sx, sy = self._axes
-            full = np.zeros((sx.size * sy.size, self.n_i, n_f), dtype=np.complex64)
-            full[self._keep] = aw
-            full = full.reshape(sx.size, sy.size, self.n_i, n_f)
-            px = np.exp(-1j * k[:, None, None] * ux[None, :, None] * sx[None, None, :]).astype(np.complex64)
-            py = np.exp(-1j * k[:, None, None] * uy[None, :, None] * sy[None, None, :]).astype(np.complex64)
-            g = np.transpose(full, (3, 1, 0, 2))  # (f, sy, sx, θ)
-            g = np.matmul(px[:, None], g)  # (f, sy, ux, θ)
-            g = np.matmul(py, g.reshape(n_f, sy.size, -1))  # (f, uy, ux·θ)
-            return np.ascontiguousarray(g.reshape(n_f, self.n_u, self.n_i), dtype=np.complex64)
-        out = np.empty((n_f, self.n_u, self.n_i), dtype=np.complex64)
-        phase_u = self.elements[:, :2] @ self.s_out.T  # (N_u, N_o)
-        dk = np.diff(k).mean() if n_f > 1 else 0.0
-        step = np.exp(-1j * dk * phase_u).astype(np.complex64)
-        p = None
-        for m in range(n_f):
-            if p is None or m % 32 == 0:
-                p = np.exp(-1j * k[m] * phase_u).astype(np.complex64)
-            out[m] = p @ aw[:, :, m]
-            p *= step
-        return out
-
-    def next(self) -> np.ndarray:
-        """Advance one frame and return V (N_f, N_u, N_θ) complex64 on the band bins.
-
-        A medium with frame_displacement = 0 is frozen: every frame repeats the first realisation.
-        """
-        if self._frozen is not None:
-            return self._frozen
-        if self.state is None:
-            self.state = self._noise()
-        elif self.g1 is not None:
-            xi = self._noise()
-            xi *= np.sqrt(np.maximum(np.float32(0), np.float32(1) - self.g1 * self.g1))
-            self.state *= self.g1
-            self.state += xi
-        v = self.state * self.envelope
-        spec = sfft.fft(v, axis=2, workers=-1)[:, :, : self.freqs.size] * np.float32(self.dt)
-        spec *= self._phase[None, None, :]
-        out = self._project(spec)
-        if self.g1 is None:
-            self._frozen, self.state = out, None
-        return out
+from .diffuse import DiffuseBackground  # noqa: E402  (the frame generator lives in its own module)

@@ -135,7 +135,7 @@ class Scenario:
         s = self.sequence.sines if sines is None else sines
         h = pl.target.transfer(el, s, self.freqs, self.c0, r)
         if in_medium and self.layer is not None:
-            h = self.layer.attenuate(h, r, pl.target.diameter, el, s, self.rho0, self.c0)
+            h = self.layer.attenuate(h, r, pl.target.diameter, el, s, self.rho0, self.c0, freqs=self.freqs)
         return h
 
     def static_transfer(self) -> np.ndarray:

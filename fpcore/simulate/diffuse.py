@@ -1,0 +1,310 @@
+"""Frame generator of the multiple-scattering background V(f, u, θ) (docs/design.md §6.3); the physics
+of its envelope, level and frame-to-frame decorrelation is in `medium` (module doc there).
+
+The field is built as upgoing plane waves leaving the suspension, one random amplitude A(o, θ, t) per
+output direction s_o (|s_o| ≲ s_d, on a grid whose spatial period λ_min/Δs exceeds the aperture) and
+transmit θ. A plane wave o launched by transmit θ that spent a time τ in the medium arrives at the
+array at t = z_s (c_θ + c_o)/c0 + τ (lateral phases referred to the array centre), so its age — and the
+envelope √⟨M²⟩(τ) it carries — depends on its direction: energy arriving obliquely at a given time is
+younger. This keeps the confocal mapping (time, angle) → depth consistent with the age of the wave.
+
+Transport additions (issue: the paper's regime), each switched by the `ScatteringLayer`:
+
+* **ℓ_s(f).** A dispersive medium (ls_exponent ≠ 0) is simulated in sub-bands, each with the envelope of
+  its own ℓ_s(f_j), from the same white noise; the spectra are blended with triangular weights in f.
+* **Reciprocity and coherent backscattering** (cbs=True). Reciprocity of the element-basis matrix is,
+  in plane waves, R(b, a) = R(−a, −b) (transmit a → upgoing b equals transmit −b → upgoing −a). The
+  output grid is aligned with the transmit sines (its spacing divides their lattice), so every pair
+  (o, θ) whose partner (−s_θ, −s_o) is in the data gets the partner's very noise; with the outputs
+  weighted by the Weyl factor 1/c_o of a point source's plane-wave spectrum (inside the flat part of the
+  taper), R(b, a) W_a = R(−a, −b) W_b, which is R_uu' = R_u'u in the element basis. The crossed
+  (reversed-path) intensity adds the cone 1 + exp(−k²|s_o + s_θ|² D' s) to the envelope, with the
+  endpoints of a path of length s spread by 2D's per axis (D' = ℓ_s/dim): enhancement 2 at exact
+  retro-reflection s_o = −s_θ, a cone of width ~1/(k√(D's)) (Akkermans & Montambaux, ch. 8).
+* **Single scattering by the beads** (single_scattering="field"): the first order is a continuum
+  reflectivity focused like a speckle image (`single_scattering.SingleScatteringField`), and the Gaussian
+  field carries the orders ≥ 2 only; "envelope" keeps all orders in the Gaussian field.
+
+Construction per frame: complex white noise ξ(o, θ, t_n) on a baseband time grid (spacing
+Δ = period/n_bb, E|ξ|² = 1/Δ, i.e. unit spectral density), multiplied by the envelope, Fourier
+transformed onto the band bins, and projected to the elements, M(u, θ, f) = Σ_o w_o A e^{−ik s_o·u}
+(taper w_o, Σ w_o² = 1). Frames evolve by ξ_n = g₁ ξ_{n−1} + √(1 − g₁²) ξ'_n with g₁(τ) (DWS).
+The RF background is S(f)·V(f); it is statistically independent of every target.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+import scipy.fft as sfft
+
+from ..geometry import cosines
+from .single_scattering import SingleScatteringField
+from .waves import Band, TimeWindow
+
+if TYPE_CHECKING:
+    from .medium import ScatteringLayer
+
+__all__ = ["DiffuseBackground", "aligned_spacing", "reciprocal_pairs"]
+
+#: At most this many sub-bands for a dispersive medium: enough that ℓ_s changes by ≤ 25 % between neighbours.
+N_SUB_BANDS = 8
+
+
+def aligned_spacing(ds_max: float, values: np.ndarray, tol: float = 1e-9) -> float | None:
+    """The largest spacing ≤ ds_max of which every value is an integer multiple, or None (irregular)."""
+    v = np.asarray(values, dtype=np.float64)
+    nz = np.abs(v[np.abs(v) > tol])
+    if nz.size == 0:
+        return ds_max
+    base = float(nz.min())
+    for j in range(1, 400):
+        g = base / j
+        if g > ds_max * (1 + 1e-12):
+            continue
+        if np.all(np.abs(v / g - np.round(v / g)) < 1e-6):
+            return g
+        break
+    return None
+
+
+def reciprocal_pairs(s_out: np.ndarray, sines: np.ndarray, tol: float = 1e-7) -> tuple[np.ndarray, np.ndarray]:
+    """Index arrays (o, θ) → partner (o', θ') with s_out[o'] = −s_θ and s_θ' = −s_out[o]; −1 where absent."""
+    so, si = np.asarray(s_out, float), np.asarray(sines, float)
+    d_o = np.linalg.norm(so[:, None, :] + si[None, :, :], axis=2)  # (N_o, N_θ): |s_o + s_θ|
+    o_of_theta = np.where(d_o.min(axis=0) < tol, d_o.argmin(axis=0), -1)  # o' with s_o' = −s_θ
+    theta_of_o = np.where(d_o.min(axis=1) < tol, d_o.argmin(axis=1), -1)  # θ' with s_θ' = −s_o
+    po = np.broadcast_to(o_of_theta[None, :], d_o.shape)
+    pt = np.broadcast_to(theta_of_o[:, None], d_o.shape)
+    ok = (po >= 0) & (pt >= 0)
+    return np.where(ok, po, -1), np.where(ok, pt, -1)
+
+
+class DiffuseBackground:
+    """Frame generator of the multiple-scattering spectrum V(f, u, θ) (dimensionless, like a target's H)."""
+
+    def __init__(
+        self,
+        layer: ScatteringLayer,
+        elements: np.ndarray,
+        sines: np.ndarray,
+        window: TimeWindow,
+        band: Band,
+        c0: float,
+        dim: int,
+        aperture_radius: float,
+        rng: np.random.Generator,
+    ) -> None:
+        self.layer, self.window, self.band, self.c0, self.dim = layer, window, band, c0, dim
+        self.rng = rng
+        self.bins = window.band_bins(band)
+        self.freqs = window.freqs()[self.bins]
+        el = np.asarray(elements, dtype=np.float64)
+        s = np.asarray(sines, dtype=np.float64)
+        self.n_u, self.n_i = el.shape[0], s.shape[0]
+        self.elements = el
+        n_f = self.bins.size
+        self.n_bb = int(sfft.next_fast_len(2 * n_f))
+        self.dt = window.period / self.n_bb
+        v = c0 if layer.energy_velocity is None else layer.energy_velocity
+        # Angular spread of the halo seen from the array at the middle of the window.
+        mid = window.t0 + 0.5 * window.duration - 2 * layer.z_surface / c0
+        b = float(np.sqrt(layer.halo_radius2(np.array(max(mid, 0.0) * v), aperture_radius)))
+        self.s_d = b / np.hypot(b, layer.z_surface)
+        # Direction grid: spatial period λ_min/Δs ≥ 1.2 × the array extent; aligned with the transmits'
+        # lattice when reciprocity is asked for (module doc).
+        span = np.ptp(el[:, :2], axis=0) + 1e-12
+        lam_min = c0 / band.support[1]
+        s_cut = min(1.15 * self.s_d, 0.98)
+        axes, spacings = [], []
+        for d in range(2 if dim == 3 else 1):
+            ds = lam_min / (1.2 * max(span[d], lam_min))
+            if layer.cbs:
+                ds = aligned_spacing(ds, s[:, d]) or ds
+            m = int(np.floor(s_cut / ds))
+            axes.append(np.arange(-m, m + 1) * ds)
+            spacings.append(ds)
+        if dim == 3:
+            sx, sy = np.meshgrid(axes[0], axes[1], indexing="ij")
+            so = np.stack([sx.ravel(), sy.ravel()], axis=1)
+        else:
+            so = np.stack([axes[0], np.zeros_like(axes[0])], axis=1)
+        smag = np.hypot(so[:, 0], so[:, 1])
+        keep = smag < s_cut
+        self.s_out = so[keep]
+        self._axes = axes
+        self._keep = keep
+        self._grid = self._element_grid(el) if dim == 3 else None
+        x = np.clip((smag[keep] / self.s_d - 0.85) / 0.3, 0.0, 1.0)
+        c_o = cosines(self.s_out)
+        # Taper × the plane-wave (Weyl) weight 1/c_o of a point source's spectrum, so that a reciprocal noise
+        # pair gives R(b, a) W_a = R(−a, −b) W_b: a symmetric matrix in the element basis (module doc).
+        w = (0.5 + 0.5 * np.cos(np.pi * x)) / c_o
+        self.weights = (w / np.sqrt(np.sum(w**2))).astype(np.float32)
+        self.n_o = self.s_out.shape[0]
+        t = window.t0 + np.arange(self.n_bb) * self.dt
+        t_on = layer.z_surface * (cosines(s)[None, :] + c_o[:, None]) / c0  # (N_o, N_θ)
+        tau = (t[None, None, :] - t_on[:, :, None]).astype(np.float32)
+        # Sub-bands (one for a non-dispersive medium) and their triangular blending weights in f.
+        ls_span = layer.ls_at(np.array([self.freqs[0], self.freqs[-1]]))
+        n_sub = 1 + int(np.ceil(np.log(float(ls_span.max() / ls_span.min())) / np.log(1.25) - 1e-9))
+        n_sub = 1 if layer.ls_exponent == 0.0 else min(N_SUB_BANDS, n_f, max(n_sub, 2))
+        self.centres = np.linspace(self.freqs[0], self.freqs[-1], n_sub) if n_sub > 1 else np.array([band.centre])
+        self.blend = _triangles(self.freqs, self.centres)  # (n_sub, N_f)
+        orders_from = 2 if layer.single_scattering == "field" else 1
+        tab = np.linspace(0.0, max(float(tau.max()), 1e-9), 4096)
+        sep2 = np.sum((self.s_out[:, None, :] + s[None, :, :]) ** 2, axis=2)  # |s_o + s_θ|², (N_o, N_θ)
+        self.envelopes: list[np.ndarray] = []
+        for fc in self.centres:
+            lay = layer.at_frequency(float(fc))
+            # ⟨M²⟩ per unit pulse energy: unit-density white noise shaped by this envelope and filtered by
+            # S(f) has variance envelope² · E_s = ⟨M²⟩. Tabulated in τ, then interpolated.
+            rate = lay.intensity(tab, c0, aperture_radius, dim, pulse_energy=1.0, orders_from=orders_from)
+            env = np.interp(tau, tab, np.sqrt(np.maximum(rate, 0.0)), left=0.0).astype(np.float32)
+            if layer.cbs:
+                kc = 2 * np.pi * fc / c0
+                path = v * np.maximum(tau, 0.0)
+                cone = np.exp(-(kc**2) * sep2[:, :, None] * (lay.ls / dim) * path)
+                env *= np.sqrt(1.0 + cone).astype(np.float32)
+            self.envelopes.append(env)
+        self.envelope = self.envelopes[len(self.envelopes) // 2]  # the band-centre one (tests, diagnostics)
+        self.g1 = (
+            np.interp(tau, tab, layer.at_frequency(band.centre).correlation_per_frame(tab, c0, band.centre)).astype(
+                np.float32
+            )
+            if layer.frame_displacement > 0
+            else None
+        )
+        self.n_reciprocal_pairs = 0
+        if layer.cbs:
+            pair_o, pair_t = reciprocal_pairs(self.s_out, s)
+            oo, tt = np.meshgrid(np.arange(self.n_o), np.arange(self.n_i), indexing="ij")
+            # Copy (o', θ') ← (o, θ) for one member of each pair (the exact retro pairs map onto themselves).
+            lead = (pair_o >= 0) & ((pair_o > oo) | ((pair_o == oo) & (pair_t > tt)))
+            self._copy_src = (oo[lead], tt[lead])
+            self._copy_dst = (pair_o[lead], pair_t[lead])
+            self.n_reciprocal_pairs = int(lead.sum())
+        self.single: SingleScatteringField | None = None
+        if layer.single_scattering == "field":
+            t_end = window.t0 + window.period
+            # Deep enough that the echo at the band's lower −6 dB edge has fallen by e^{−12} in intensity.
+            depth_max = max(min(0.5 * c0 * t_end - layer.z_surface, 6.0 * float(layer.l_ext_at(band.f_min))), 1e-3)
+            ss_rng = np.random.default_rng(rng.integers(2**63))
+            sub = [np.flatnonzero(np.argmax(self.blend, axis=0) == j) for j in range(n_sub)]
+            self.single = SingleScatteringField(
+                layer,
+                self.s_out,
+                float(np.prod(spacings)) ** (1.0 / len(spacings)),
+                s,
+                self.freqs,
+                sub,
+                self.centres,
+                c0,
+                dim,
+                (float(span[0]), float(span[1]) if dim == 3 else 0.0),
+                depth_max,
+                ss_rng,
+            )
+        self.state: np.ndarray | None = None
+        self._frozen: np.ndarray | None = None
+        self._phase = np.exp(-2j * np.pi * self.freqs * window.t0).astype(np.complex64)
+
+    def _noise(self) -> np.ndarray:
+        shape = (self.n_o, self.n_i, self.n_bb)
+        sig = np.float32(np.sqrt(0.5 / self.dt))
+        xi = self.rng.standard_normal(shape, dtype=np.float32) * sig
+        out = np.empty(shape, dtype=np.complex64)
+        out.real = xi
+        out.imag = self.rng.standard_normal(shape, dtype=np.float32) * sig
+        if self.n_reciprocal_pairs:
+            out[self._copy_dst] = out[self._copy_src]
+        return out
+
+    @staticmethod
+    def _element_grid(el: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """(x, y) axes if the elements form a full x-fastest grid (separable projection), else None."""
+        xs, ys = np.unique(el[:, 0]), np.unique(el[:, 1])
+        if xs.size * ys.size != el.shape[0]:
+            return None
+        yy, xx = np.meshgrid(ys, xs, indexing="ij")
+        if np.allclose(el[:, 0], xx.ravel()) and np.allclose(el[:, 1], yy.ravel()):
+            return xs, ys
+        return None
+
+    def _project(self, aw: np.ndarray) -> np.ndarray:
+        """M(f, u, θ) = Σ_o aw(o, θ, f) e^{−ik s_o·u} for weighted amplitudes aw (N_o, N_θ, N_f).
+
+        Separable (x then y) for a regular matrix array, by frequency recursion otherwise.
+        """
+        k = 2 * np.pi * self.freqs / self.c0
+        n_f = self.freqs.size
+        if self._grid is not None:
+            ux, uy = self._grid
+            sx, sy = self._axes
+            full = np.zeros((sx.size * sy.size, self.n_i, n_f), dtype=np.complex64)
+            full[self._keep] = aw
+            full = full.reshape(sx.size, sy.size, self.n_i, n_f)
+            px = np.exp(-1j * k[:, None, None] * ux[None, :, None] * sx[None, None, :]).astype(np.complex64)
+            py = np.exp(-1j * k[:, None, None] * uy[None, :, None] * sy[None, None, :]).astype(np.complex64)
+            g = np.transpose(full, (3, 1, 0, 2))  # (f, sy, sx, θ)
+            g = np.matmul(px[:, None], g)  # (f, sy, ux, θ)
+            g = np.matmul(py, g.reshape(n_f, sy.size, -1))  # (f, uy, ux·θ)
+            return np.ascontiguousarray(g.reshape(n_f, self.n_u, self.n_i), dtype=np.complex64)
+        out = np.empty((n_f, self.n_u, self.n_i), dtype=np.complex64)
+        phase_u = self.elements[:, :2] @ self.s_out.T  # (N_u, N_o)
+        dk = np.diff(k).mean() if n_f > 1 else 0.0
+        step = np.exp(-1j * dk * phase_u).astype(np.complex64)
+        p = None
+        for m in range(n_f):
+            if p is None or m % 32 == 0:
+                p = np.exp(-1j * k[m] * phase_u).astype(np.complex64)
+            out[m] = p @ aw[:, :, m]
+            p *= step
+        return out
+
+    def multiple_spectrum(self) -> np.ndarray:
+        """A_MS(o, θ, f) of the current noise state: envelope-shaped, Fourier-transformed, sub-bands blended."""
+        assert self.state is not None
+        spec = np.zeros((self.n_o, self.n_i, self.freqs.size), dtype=np.complex64)
+        for env, wts in zip(self.envelopes, self.blend, strict=True):
+            used = wts > 0
+            part = sfft.fft(self.state * env, axis=2, workers=-1)[:, :, : self.freqs.size]
+            spec[:, :, used] += part[:, :, used] * (wts[used] * self.dt).astype(np.float32)
+        spec *= self._phase[None, None, :]
+        return spec
+
+    def next(self) -> np.ndarray:
+        """Advance one frame and return V (N_f, N_u, N_θ) complex64 on the band bins.
+
+        A medium with frame_displacement = 0 is frozen: every frame repeats the first realisation.
+        """
+        if self._frozen is not None:
+            return self._frozen
+        if self.state is None:
+            self.state = self._noise()
+        elif self.g1 is not None:
+            xi = self._noise()
+            xi *= np.sqrt(np.maximum(np.float32(0), np.float32(1) - self.g1 * self.g1))
+            self.state *= self.g1
+            self.state += xi
+        aw = self.multiple_spectrum() * self.weights[:, None, None]
+        if self.single is not None:
+            self.single.advance()
+            aw += self.single.spectrum()
+        out = self._project(aw)
+        if self.g1 is None:
+            self._frozen, self.state = out, None
+        return out
+
+
+def _triangles(freqs: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """Triangular (linear-interpolation) weights of each frequency between neighbouring centres; sum 1."""
+    if centres.size == 1:
+        return np.ones((1, freqs.size))
+    w = np.zeros((centres.size, freqs.size))
+    for j in range(centres.size):
+        e = np.zeros(centres.size)
+        e[j] = 1.0
+        w[j] = np.interp(freqs, centres, e)
+    return w

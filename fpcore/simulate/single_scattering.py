@@ -1,0 +1,177 @@
+"""Single scattering by the medium's own scatterers (the beads): a continuum reflectivity in the
+plane-wave output basis, computed by a non-uniform FFT (docs/design.md §6.3).
+
+Physics. A density n of scatterers of strength t (σ_s = |t|²/(4π) in 3D, |t|²/(4k) in 2D) with
+n σ_s = 1/ℓ_s(f) is a random reflectivity η(r) with ⟨η η*⟩ = n|t|² δ(r − r') = (4π/ℓ_s) δ (3D),
+(4k/ℓ_s) δ (2D) (independent scattering, Supplementary S1). In the first Born approximation through
+the coherent (extinguished) medium, transmit θ (sine a, cosine c_a) and an upgoing output plane wave o
+(sine b, cosine c_b; element phase e^{−ik b·u}) see
+
+    A(o, θ, f) = W_b(f) (1 − R²) Σ_m η_m e^{−ik[(a − b)·x_m + (c_a + c_b) z_m]} e^{−d_m/ℓ_ext(f)} w(x_m)
+
+with d_m = z_m − z_s the depth below the surface, e^{−d/ℓ_ext(f)} the extinction of both legs at
+normal incidence (obliquity neglected: the legs' factors 1/c_a, 1/c_b ≤ 1.15 within ±0.5 of the axis),
+w(x) the lateral extent of the transmitted beam (the aperture widened by the steering, a smooth edge)
+and W_b the plane-wave (Weyl) weight of the Green function on the output grid of spacing Δs:
+e^{−ikR}/(4πR) = (−ik/8π²) ∫ d²b e^{−ik(b·x + c_b|z|)}/c_b, so W_b = −ik Δs²/(8π² c_b) (3D), and
+(−i/4)H₀⁽²⁾(kR) = (−i/4π) ∫ db e^{−ik(b x + c_b|z|)}/c_b, W_b = −iΔs/(4π c_b) (2D). The
+reflectivity is sampled on a grid that resolves the band's spatial frequencies (lateral k|a − b|,
+axial k(c_a + c_b) demodulated about its centre), and the sum is one type-2 NUFFT per sub-band of
+frequencies (each sub-band has its own ℓ_s(f), so the echo is filtered by exp(−2z/ℓ_ext(f))).
+
+Frames: the beads move by ⟨Δr²⟩^{1/2} between frames; a single-scattering echo (wavevector transfer
+≈ 2k) keeps the correlation g₁ = exp(−(2k)²⟨Δr²⟩/6) (3D Brownian displacement), applied as an AR(1)
+update of the grid's white noise.
+"""
+
+from __future__ import annotations
+
+import finufft
+import numpy as np
+
+from ..geometry import cosines
+
+__all__ = ["SingleScatteringField"]
+
+
+class SingleScatteringField:
+    """The beads' single-scattering spectrum A(o, θ, f) on an output plane-wave grid (module doc).
+
+    layer: the `ScatteringLayer`; s_out (N_o, 2) output sines on a grid of spacing `ds`; sines (N_θ, 2)
+    transmits; freqs (N_f,) Hz; sub_bands: list of index arrays into freqs, each with its centre
+    frequency in `centres`; aperture (lateral extents of the array, m) and the deepest depth below the
+    surface worth simulating `depth_max` (m).
+    """
+
+    def __init__(
+        self,
+        layer,  # noqa: ANN001 - ScatteringLayer (import cycle)
+        s_out: np.ndarray,
+        ds: float,
+        sines: np.ndarray,
+        freqs: np.ndarray,
+        sub_bands: list[np.ndarray],
+        centres: np.ndarray,
+        c0: float,
+        dim: int,
+        aperture: tuple[float, float],
+        depth_max: float,
+        rng: np.random.Generator,
+        rho0: float = 1000.0,
+    ) -> None:
+        self.layer, self.c0, self.dim, self.rng, self.ds = layer, c0, dim, rng, ds
+        self.freqs = np.asarray(freqs, dtype=np.float64)
+        self.sub_bands, self.centres = sub_bands, np.asarray(centres, dtype=np.float64)
+        so = np.asarray(s_out, dtype=np.float64)
+        si = np.asarray(sines, dtype=np.float64)
+        self.n_o, self.n_i = so.shape[0], si.shape[0]
+        co, ci = cosines(so), cosines(si)
+        # Spatial frequencies per (o, θ) in units of k: lateral a − b, axial c_a + c_b.
+        self._qx = si[None, :, 0] - so[:, None, 0]
+        self._qy = si[None, :, 1] - so[:, None, 1]
+        self._qz = ci[None, :] + co[:, None]
+        k_max = 2 * np.pi * float(self.freqs.max()) / c0
+        k_min = 2 * np.pi * float(self.freqs.min()) / c0
+        # Axial: demodulate about the centre of k(c_a + c_b) over the band; Nyquist with a 1.5 margin.
+        qz_lo, qz_hi = k_min * float(self._qz.min()), k_max * float(self._qz.max())
+        self._kz0 = 0.5 * (qz_lo + qz_hi)
+        hz = np.pi / (1.02 * max(0.5 * (qz_hi - qz_lo), 1e-9))
+        qx_max = k_max * max(float(np.abs(self._qx).max()), 1e-6)
+        hx = np.pi / (1.02 * qx_max)
+        z_s = layer.z_surface
+        self.nz = max(4, int(np.ceil(depth_max / hz)) + 1)
+        self.hz = hz
+        self.depths = np.arange(self.nz) * hz
+        # Lateral extent of the insonified beam: the aperture, widened by the steering at the deepest depth.
+        steer = np.abs(si).max(axis=0) if si.size else np.zeros(2)
+        half = [0.5 * aperture[d] + steer[d] * (z_s + depth_max) + 1e-3 for d in range(2)]
+        self.nx = 2 * int(np.ceil(1.15 * half[0] / hx)) + 1
+        self.ny = 2 * int(np.ceil(1.15 * half[1] / hx)) + 1 if dim == 3 else 1
+        self.hx = hx
+        xs = (np.arange(self.nx) - self.nx // 2) * hx
+        ys = (np.arange(self.ny) - self.ny // 2) * hx
+        beam = _edge(xs, half[0], 0.15 * half[0])[:, None] * (
+            _edge(ys, half[1], 0.15 * half[1])[None, :] if dim == 3 else np.ones((1, 1))
+        )
+        self._beam = beam.astype(np.float32)  # (nx, ny)
+        cell = hx * hz * (hx if dim == 3 else 1.0)
+        self._cell = cell
+        t_r = 1.0 - layer.reflection(rho0, c0) ** 2
+        self._t_r = t_r
+        self._co = co
+        g = layer.correlation_single(c0, float(np.mean(self.freqs))) if layer.frame_displacement > 0 else None
+        self.g1 = g
+        self.state: np.ndarray | None = None
+
+    def _white(self) -> np.ndarray:
+        shape = (self.nx, self.ny, self.nz)
+        out = np.empty(shape, dtype=np.complex64)
+        sig = np.float32(np.sqrt(0.5))
+        out.real = self.rng.standard_normal(shape, dtype=np.float32) * sig
+        out.imag = self.rng.standard_normal(shape, dtype=np.float32) * sig
+        return out
+
+    def advance(self) -> None:
+        """Draw the first grid, or move the beads by one frame (AR(1) with g₁; frozen when g₁ is None)."""
+        if self.state is None:
+            self.state = self._white()
+        elif self.g1 is not None:
+            g = np.float32(self.g1)
+            self.state *= g
+            self.state += self._white() * np.float32(np.sqrt(max(0.0, 1.0 - self.g1**2)))
+
+    def spectrum(self) -> np.ndarray:
+        """A(o, θ, f) (N_o, N_θ, N_f) complex64 for the current grid (module doc)."""
+        if self.state is None:
+            self.advance()
+        assert self.state is not None
+        out = np.zeros((self.n_o, self.n_i, self.freqs.size), dtype=np.complex64)
+        z_s, lay = self.layer.z_surface, self.layer
+        for idx, fc in zip(self.sub_bands, self.centres, strict=True):
+            if idx.size == 0:
+                continue
+            ls, lext = float(lay.ls_at(fc)), float(lay.l_ext_at(fc))
+            kc = 2 * np.pi * fc / self.c0
+            strength = (4 * np.pi / ls) if self.dim == 3 else (4 * kc / ls)  # n|t|² (module doc)
+            # The depth profile: extinction of both legs, the scattering strength, and e^{−i k_z0 d} (the axial
+            # carrier taken out of the NUFFT's spatial frequencies below).
+            depth_w = np.exp(-self.depths / lext - 1j * self._kz0 * self.depths) * np.sqrt(strength * self._cell)
+            grid = self.state * (self._beam[:, :, None] * depth_w[None, None, :].astype(np.complex64))
+            k = 2 * np.pi * self.freqs[idx] / self.c0  # (n_f,)
+            kx = (k[None, None, :] * self._qx[:, :, None]).ravel()
+            kz = (k[None, None, :] * self._qz[:, :, None]).ravel()
+            # e^{−iK·r}: r = (x, y, z_s + d); d_m = m hz (m ≥ 0) → modes centred: d = (m' + nz/2) hz with
+            # finufft's modes m' ∈ [−nz/2, nz/2); the axial frequency is demodulated by k_z0.
+            pz = ((kz - self._kz0) * self.hz).astype(np.float32)
+            px = (kx * self.hx).astype(np.float32)
+            vals: np.ndarray
+            if self.dim == 3:
+                ky = (k[None, None, :] * self._qy[:, :, None]).ravel()
+                py = (ky * self.hx).astype(np.float32)
+                vals = finufft.nufft3d2(
+                    px, py, pz, np.ascontiguousarray(grid, dtype=np.complex64), isign=-1, eps=1e-4, modeord=0
+                )
+            else:
+                vals = finufft.nufft2d2(
+                    px, pz, np.ascontiguousarray(grid[:, 0, :], dtype=np.complex64), isign=-1, eps=1e-4, modeord=0
+                )
+            vals = vals.reshape(self.n_o, self.n_i, idx.size)
+            # Phase of the depth origin: d = 0 at mode −nz//2 → e^{−i(kz − kz0) hz (nz//2)}; and e^{−i kz z_s}.
+            m0 = self.nz // 2
+            ph = np.exp(-1j * ((kz - self._kz0) * self.hz * m0 + kz * z_s)).reshape(self.n_o, self.n_i, idx.size)
+            if self.dim == 3:
+                weyl = (-1j * k[None, :] * self._ds2 / (8 * np.pi**2 * self._co[:, None]))[:, None, :]
+            else:
+                weyl = (-1j * self._ds2 / (4 * np.pi * self._co[:, None]) * np.ones_like(k)[None, :])[:, None, :]
+            out[:, :, idx] = (vals * ph * weyl * self._t_r).astype(np.complex64)
+        return out
+
+    @property
+    def _ds2(self) -> float:
+        return self.ds**2 if self.dim == 3 else self.ds
+
+
+def _edge(x: np.ndarray, half: float, soft: float) -> np.ndarray:
+    """1 inside |x| < half − soft, a cosine edge down to 0 at |x| = half + soft."""
+    t = np.clip((np.abs(x) - (half - soft)) / (2 * soft), 0.0, 1.0)
+    return 0.5 + 0.5 * np.cos(np.pi * t)
