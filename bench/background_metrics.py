@@ -144,7 +144,7 @@ def frequency_correlation_width(
 
 
 def _out_grid(sines: np.ndarray, dim: int, extent: float) -> np.ndarray:
-    """Output sines b on the transmit lattice refined 2×, containing every −a, out to max|a| + extent."""
+    """Output sines b on the transmit lattice refined 2×, containing every −a, out to max|a| + extent (|b| < 0.95)."""
     s = np.asarray(sines, dtype=np.float64)
     axes = []
     for d in range(dim - 1):
@@ -153,9 +153,11 @@ def _out_grid(sines: np.ndarray, dim: int, extent: float) -> np.ndarray:
         m = int(np.ceil((np.max(np.abs(u)) + extent) / step))
         axes.append(np.arange(-m, m + 1) * step)
     if dim == 2:
-        return np.stack([axes[0], np.zeros_like(axes[0])], axis=1)
-    yy, xx = np.meshgrid(axes[1], axes[0], indexing="ij")
-    return np.stack([xx.ravel(), yy.ravel()], axis=1)
+        b = np.stack([axes[0], np.zeros_like(axes[0])], axis=1)
+    else:
+        yy, xx = np.meshgrid(axes[1], axes[0], indexing="ij")
+        b = np.stack([xx.ravel(), yy.ravel()], axis=1)
+    return b[np.hypot(b[:, 0], b[:, 1]) < 0.95]  # propagating directions only
 
 
 def cbs_enhancement(
