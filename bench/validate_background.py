@@ -138,7 +138,10 @@ def compare(dim: int, quick: bool, n_model: int | None, layer_kw: dict[str, Any]
     tb = np.abs(data["T"].mean(axis=0)[m_c])
     sel = (depths > s.z_surface + 0.5e-3) & (depths < s.z_surface + s.thickness - 0.5e-3)
     ls_meas = -0.5 / np.polyfit(depths[sel], np.log(tb[sel]), 1)[0]
+    kk = data["K"]
+    asym = float(np.abs(kk - np.swapaxes(kk, 2, 3)).max() / np.abs(kk).max())
     return {
+        "asym": asym,
         "setup": s,
         "data": data,
         "fl": fl,
@@ -184,9 +187,20 @@ def report(res: dict[str, Any]) -> None:
     for name, a, b, crit, ok in figures(res):
         print(f"  {name:34s} {a:9.3g} {b:9.3g}  {crit:18s} {'PASS' if ok else 'FAIL'}")
     fl, mod = res["fl"], res["model"]
+    t_on = 2 * s.z_surface / s.c0
+    marks = t_on + np.array([2, 5, 10, 20, 30, 40, 50]) * 1e-6
+    marks = marks[marks <= s.t_end]
+    at = [int(np.argmin(np.abs(fl["t"] - tm))) for tm in marks]
+    print(
+        "  envelope model/FL (dB) at t − t_surface = "
+        + ", ".join(
+            f"{(tm - t_on) * 1e6:.0f} µs: {10 * np.log10(mod['env'][i] / fl['env'][i]):+.1f}"
+            for tm, i in zip(marks, at, strict=True)
+        )
+    )
     print(
         f"  reciprocity (plane-wave Q vs Q^T): FL {fl['cbs']['reciprocity']:.3f}, "
-        f"model {mod['cbs']['reciprocity']:.3f}; "
+        f"model {mod['cbs']['reciprocity']:.3f} (FL element basis max|K − Kᵀ|/max|K| = {res['asym']:.1e}); "
         f"contrast fit over z = {res['fl']['z_fit'][0] * 1e3:.1f}-{res['fl']['z_fit'][1] * 1e3:.1f} mm"
     )
 
