@@ -203,6 +203,10 @@ def run(s: Setup, path: Path) -> dict[str, np.ndarray]:
             counts.append(pts.shape[0])
             prog.update(task, description=f"FL {s.dim}D real {r + 1}/{s.n_real} N={pts.shape[0]}")
             kk[r], tz[r] = solve_realisation(s, pts, freqs, depths, lambda: prog.advance(task))
+            if not prog.console.is_terminal:
+                print(
+                    f"realisation {r + 1}/{s.n_real}: N = {pts.shape[0]}, {time.perf_counter() - t0:.0f} s", flush=True
+                )
     k = 2 * np.pi * freqs / s.c0
     sigma = cross_section(s.strength(k), k, s.dim)
     out = dict(
