@@ -140,7 +140,7 @@ class DiffuseBackground:
         c_o = cosines(self.s_out)
         # Taper × the plane-wave (Weyl) weight 1/c_o of a point source's spectrum, so that a reciprocal noise
         # pair gives R(b, a) W_a = R(−a, −b) W_b: a symmetric matrix in the element basis (module doc).
-        w = (0.5 + 0.5 * np.cos(np.pi * x)) / c_o
+        w = (0.5 + 0.5 * np.cos(np.pi * x)) / (c_o if layer.cbs else 1.0)
         self.weights = (w / np.sqrt(np.sum(w**2))).astype(np.float32)
         self.n_o = self.s_out.shape[0]
         t = window.t0 + np.arange(self.n_bb) * self.dt

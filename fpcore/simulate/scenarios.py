@@ -72,9 +72,43 @@ def _sinking(a: np.ndarray, b: np.ndarray, n: int, rate: float = 2.0) -> np.ndar
 _SUSPENSION_ROI_Z = (20e-3, 31e-3)
 
 
-def _granular_suspension(**overrides: Any) -> ScatteringLayer:
+#: The two sets of conventions of the sinking scenarios. "paper" (default): the paper's depth convention
+#: (a target attenuated at its centre, main text eq. (1)), ℓ_s(f) by the Rayleigh law of Supplementary S1
+#: (the ballistic echo filtered by exp(−2z/ℓ_ext(f))), the beads' single scattering as a focused speckle,
+#: a reciprocal background with coherent backscattering, no gain on the background level, and every
+#: calibration once in water at a fixed position independent of the truth (the paper's (0, 0, 25) mm).
+#: "legacy" (for comparison only): the conventions before that change — attenuation from the front face,
+#: a non-dispersive ℓ_s, all scattering orders in one Gaussian field, a per-scenario gain, calibrations at
+#: each target's initial (true) position, and the shallower depths (docs/design.md §6.4).
+CONVENTIONS = ("paper", "legacy")
+
+#: Target depths below the surface (m): the paper's sphere centres 9 and 7 mm below the surface (main text),
+#: sphere 1 settling to 9 mm; legacy: 8 → 8.6 and 7.5 mm.
+_DEPTHS = {"paper": ((8.4e-3, 9.0e-3), 7.0e-3), "legacy": ((8e-3, 8.6e-3), 7.5e-3)}
+
+
+def _depths(
+    conventions: str,
+    layer: ScatteringLayer,
+    sink: tuple[float, float] | None,
+    static_depth: float | None,
+    depth_ls: float | None,
+) -> tuple[tuple[float, float], float]:
+    """(settling target's start and end depth, static target's depth) below the surface (m)."""
+    if depth_ls is not None:
+        if not depth_ls > 0:
+            raise ValueError(f"depth_ls: expected a positive number of mean free paths, got {depth_ls}")
+        d = depth_ls * layer.ls
+        return (sink or (d, d + 0.6e-3)), (d if static_depth is None else static_depth)
+    return (sink or _DEPTHS[conventions][0]), (_DEPTHS[conventions][1] if static_depth is None else static_depth)
+
+
+def _granular_suspension(conventions: str = "paper", **overrides: Any) -> ScatteringLayer:
     """The vibrated granular suspension of the paper's first experiment (Supplementary S1): surface 16 mm
-    below the array, ℓ_s = 1.8 mm, ℓ_a = 8 mm, 50 µm scatterer motion between frames; `overrides` win."""
+    below the array, ℓ_s = 1.8 mm at 2.2 MHz, ℓ_a = 8 mm, 50 µm scatterer motion between frames, in the
+    given `conventions` (CONVENTIONS); `overrides` win."""
+    if conventions not in CONVENTIONS:
+        raise ValueError(f"conventions: expected one of {CONVENTIONS}, got {conventions!r}")
     params: dict[str, Any] = dict(
         z_surface=16e-3,
         ls=1.8e-3,
@@ -83,8 +117,20 @@ def _granular_suspension(**overrides: Any) -> ScatteringLayer:
         sound_speed=1600.0,
         frame_displacement=50e-6,
         roughness=0.15e-3,
-        attenuation_depth="front",
     )
+    if conventions == "paper":
+        # ℓ_s(f): Rayleigh (f^−4) below the beads' k a = 1 (f_cross = c0/(2π a) = 1.54 MHz for a = 155 µm),
+        # saturating above; anchored at ℓ_s(2.2 MHz) = 1.8 mm (Supplementary S1).
+        params.update(
+            attenuation_depth="centre",
+            ls_exponent=4.0,
+            f_ref=2.2e6,
+            f_cross=1.54e6,
+            single_scattering="field",
+            cbs=True,
+        )
+    else:
+        params.update(attenuation_depth="front")
     params.update(overrides)
     return ScatteringLayer(**params)
 
@@ -94,25 +140,28 @@ def sinking_sphere(
     seed: int = 0,
     n_frames: int = 32,
     noise_rms: float = 2e-4,
-    sink: tuple[float, float] = (8e-3, 8.6e-3),
-    calibration: str = "nominal",
+    sink: tuple[float, float] | None = None,
+    calibration: str | None = None,
+    conventions: str = "paper",
+    sphere2_depth: float | None = None,
+    depth_ls: float | None = None,
     **layer_overrides: Any,
 ) -> Scenario:
     """Paper experiment 1: two metal spheres in a vibrated granular suspension, one sinking.
 
     Geometry (paper main text and Supplementary S1): suspension surface 16 mm below the array;
-    sphere 1 (d = 10 mm) centre `sink` = 8 → 8.6 mm below the surface (4.4 → 4.8 ℓ_s), settling
-    (decelerating) along a straight trajectory that also drifts by 0.45 mm in x and 0.25 mm in y;
-    sphere 2 (d = 8 mm) static, centre 7.5 mm below (4.2 ℓ_s); both start in the plane y = 0 at
-    x = ∓4.75 mm (clear of each other). The multiple-scattering level is the radiative estimate of
-    `ScatteringLayer` times gain = 2.5, which puts the spheres' caps at the level of the confocal fog,
-    as the paper observes (main text Fig. 1d, 3: "completely invisible"); with gain = 1 the caps
-    stand 4–7× above the fog and C_γ is about 1.6× higher. Calibrations (target alone in
-    water): calibration="nominal" puts r0 at the target's initial position, so the virtual shift
-    from r0 stays within the trajectory (with a finite aperture a sphere seen from 5 mm off axis
-    is not the sphere seen on axis, and the shifted fingerprint loses about half its contrast);
-    calibration="axis" uses the paper's r0 = (0, 0, 25) mm (Methods). `layer_overrides` go to
-    `ScatteringLayer`.
+    sphere 1 (d = 10 mm) centre `sink` below the surface, settling (decelerating) along a straight
+    trajectory that also drifts by 0.45 mm in x and 0.25 mm in y; sphere 2 (d = 8 mm) static,
+    centre `sphere2_depth` below the surface; both start in the plane y = 0 at x = ∓4.75 mm. With the
+    default `conventions="paper"` (see CONVENTIONS) sphere 1 settles from 8.4 to 9 mm (4.7 → 5 ℓ_s)
+    and sphere 2 sits at 7 mm (3.9 ℓ_s), the paper's depths, where C_I ≈ e^{−z/ℓ_s} is 1/150 and 1/50
+    (main text eq. (1)); the background level is the transport model's, with no gain; the
+    calibrations are simulated once, in water, at the paper's r0 = (0, 0, 25) mm (Methods), unless
+    calibration="nominal" (r0 at each target's initial position: the truth, for comparison only).
+    `conventions="legacy"`: the earlier, easier rig (front-face attenuation, 8 → 8.6 and 7.5 mm,
+    background gain 2.5, nominal calibrations). `depth_ls`: both centres that many ℓ_s (at 2.2 MHz) below
+    the surface instead, sphere 1 settling 0.6 mm from there (e.g. 2: where this implementation
+    detects both spheres; README, "The paper's regime"). `layer_overrides` go to `ScatteringLayer`.
     """
     c0, fc = 1500.0, 2.2e6
     pitch = c0 / fc / 2
@@ -125,12 +174,15 @@ def sinking_sphere(
     seq = PlaneWaveSequence.uniform_sines(5, 0.2, ny=5)
     band = Band(1.8e6, 2.6e6)
     window = TimeWindow.covering(fs, 20e-6, 75e-6, guard=35e-6)
-    layer = _granular_suspension(**{"gain": 2.5, **layer_overrides})
+    legacy = conventions == "legacy"
+    layer = _granular_suspension(conventions, **({"gain": 2.5} if legacy else {}), **layer_overrides)
     zs = layer.z_surface
+    calibration = calibration or ("nominal" if legacy else "axis")
     if calibration not in ("nominal", "axis"):
         raise ValueError(f"calibration: expected 'nominal' or 'axis', got {calibration!r}")
+    sink, z2 = _depths(conventions, layer, sink, sphere2_depth, depth_ls)
     p1 = _sinking(np.array([-4.75e-3, 0.0, zs + sink[0]]), np.array([-5.2e-3, 0.25e-3, zs + sink[1]]), n_frames)
-    p2 = np.array([[4.75e-3, 0.0, zs + 7.5e-3]])
+    p2 = np.array([[4.75e-3, 0.0, zs + z2]])
     axis = np.array([0.0, 0.0, 25e-3])
     s1 = Placement(ElasticSphere(10e-3, name="sphere1"), p1, axis if calibration == "axis" else p1[0], kind="sphere")
     s2 = Placement(ElasticSphere(8e-3, name="sphere2"), p2, axis if calibration == "axis" else p2[0], kind="sphere")
@@ -159,20 +211,25 @@ def sinking_cylinder(
     seed: int = 0,
     n_frames: int = 32,
     noise_rms: float = 2e-4,
-    sink: tuple[float, float] = (8e-3, 8.6e-3),
+    sink: tuple[float, float] | None = None,
+    calibration: str | None = None,
+    conventions: str = "paper",
+    cylinder2_depth: float | None = None,
+    depth_ls: float | None = None,
     **layer_overrides: Any,
 ) -> Scenario:
     """2D analogue of `sinking_sphere`: two elastic cylinders under a granular suspension, one settling.
 
     Linear array along x (pitch λ/2 at 2.2 MHz; 128 elements, quick: 64), 11 plane waves with sines in
-    ±0.2, band 1.8–2.6 MHz; suspension surface 16 mm below the array (ℓ_s = 1.8 mm, ℓ_a = 8 mm, frame
-    displacement 50 µm); cylinder 1 (d = 10 mm) settles from `sink` = 8 → 8.6 mm below the surface
-    with a 0.45 mm drift in x; cylinder 2 (d = 8 mm) static 7.5 mm below; both of the spheres'
-    material (ρ = 5700 kg/m³, c_p = 2700 m/s, c_t = 2000 m/s). Background gain 1.0 (the 3D scenario's
-    2.5 hides a 2D target even from γ: a line array has far fewer independent channels to average
-    over; at 1.0 the cylinders are faint on the confocal image and the per-frame γ argmax already fails
-    on about half the frames, bench/validate_tracking.py). Calibration: each cylinder alone in water
-    at its initial position.
+    ±0.2, band 1.8–2.6 MHz; suspension surface 16 mm below the array (ℓ_s = 1.8 mm at 2.2 MHz,
+    ℓ_a = 8 mm, frame displacement 50 µm); cylinder 1 (d = 10 mm) settles along `sink` with a 0.45 mm
+    drift in x; cylinder 2 (d = 8 mm) static at `cylinder2_depth`; both of the spheres' material
+    (ρ = 5700 kg/m³, c_p = 2700 m/s, c_t = 2000 m/s). `conventions` as in `sinking_sphere`: "paper"
+    (default) puts the cylinders at the paper's sphere depths (8.4 → 9 mm and 7 mm), takes the
+    transport model's background level (no gain) and calibrates once in water on the axis at 25 mm;
+    "legacy": front-face attenuation, 8 → 8.6 and 7.5 mm, gain 1.0, calibrations at the initial
+    (true) positions. calibration="nominal"/"axis" overrides the calibration position; `depth_ls` as in
+    `sinking_sphere`.
     """
     c0, fc = 1500.0, 2.2e6
     pitch = c0 / fc / 2
@@ -180,12 +237,19 @@ def sinking_cylinder(
     seq = PlaneWaveSequence.uniform_sines(11, 0.2)
     band = Band(1.8e6, 2.6e6)
     window = TimeWindow.covering(10.4e6, 20e-6, 75e-6, guard=35e-6)
-    layer = _granular_suspension(**{"gain": 1.0, **layer_overrides})
+    legacy = conventions == "legacy"
+    layer = _granular_suspension(conventions, **({"gain": 1.0} if legacy else {}), **layer_overrides)
     zs = layer.z_surface
+    calibration = calibration or ("nominal" if legacy else "axis")
+    if calibration not in ("nominal", "axis"):
+        raise ValueError(f"calibration: expected 'nominal' or 'axis', got {calibration!r}")
+    sink, z2 = _depths(conventions, layer, sink, cylinder2_depth, depth_ls)
     p1 = _sinking(np.array([-4.75e-3, 0.0, zs + sink[0]]), np.array([-5.2e-3, 0.0, zs + sink[1]]), n_frames)
-    p2 = np.array([[4.75e-3, 0.0, zs + 7.5e-3]])
-    c1 = Placement(ElasticCylinder(10e-3, name="cylinder1"), p1, p1[0], kind="cylinder")
-    c2 = Placement(ElasticCylinder(8e-3, name="cylinder2"), p2, p2[0], kind="cylinder")
+    p2 = np.array([[4.75e-3, 0.0, zs + z2]])
+    axis = np.array([0.0, 0.0, 25e-3])
+    r1, r2 = (p1[0], p2[0]) if calibration == "nominal" else (axis, axis)
+    c1 = Placement(ElasticCylinder(10e-3, name="cylinder1"), p1, r1, kind="cylinder")
+    c2 = Placement(ElasticCylinder(8e-3, name="cylinder2"), p2, r2, kind="cylinder")
     return Scenario(
         "sinking-cylinder",
         probe,

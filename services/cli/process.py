@@ -16,6 +16,7 @@ from fpcore.geometry import to_xyz
 from fpcore.metrics import DEFAULT_MAX_PFA
 from services.bus import add_bus_arguments, bus_from_args, open_session, stop_on_signals, tune_malloc, wait_until
 from services.cli.imaging import add_imaging_arguments, grid_ranges, int_at_least, number_in
+from services.cli.scenario_args import add_scenario_arguments, scenario_kwargs
 from services.models import parse_model
 from services.nodes.processor import Processor, ProcessorConfig
 from services.registry import FingerprintSpec
@@ -58,6 +59,7 @@ def add_process_parser(sub: argparse._SubParsersAction) -> None:
     )
     src.add_argument("--scenario", help="calibrations of a simulator scenario's targets (e.g. sinking-sphere)")
     src.add_argument("--full", action="store_true", help="full-size scenario (default: quick)")
+    add_scenario_arguments(p)
     img = p.add_argument_group("imaging")
     add_imaging_arguments(img, peaks_help="peaks reported per fingerprint")
     img.add_argument(
@@ -139,7 +141,8 @@ def specs_from_args(args: argparse.Namespace) -> list[FingerprintSpec]:
     if args.scenario:
         from services.sources import SimulatorSource
 
-        specs.extend(SimulatorSource(args.scenario, quick=not args.full).fingerprint_specs())
+        kwargs = scenario_kwargs(args, args.scenario)
+        specs.extend(SimulatorSource(args.scenario, quick=not args.full, **kwargs).fingerprint_specs())
     return specs
 
 

@@ -21,6 +21,7 @@ from services.bus import (
     tune_malloc,
 )
 from services.cli.imaging import int_at_least, number_in
+from services.cli.scenario_args import add_scenario_arguments, scenario_kwargs
 from services.nodes.publisher import PACES, Publisher
 from services.sources import IngestSource, MCAPSource, SimulatorSource, Source, UFFSource
 from services.topics import keys
@@ -44,6 +45,7 @@ def add_publish_parser(sub: argparse._SubParsersAction) -> None:
     src.add_argument("--ingest", action="store_true", help="forward valid frames put on fp/<rig>/ingest")
     p.add_argument("--full", action="store_true", help="full-size scenario (default: quick)")
     p.add_argument("--seed", type=int, default=0, help="scenario seed (default 0)")
+    add_scenario_arguments(p)
     p.add_argument("--dataset", help="dataset name inside the UFF file")
     p.add_argument("--from-rig", help="MCAP replay: the recorded rig to replay (default: any)")
     p.add_argument("--frames", type=int_at_least(1), help="publish at most this many frames")
@@ -81,7 +83,12 @@ def add_publish_parser(sub: argparse._SubParsersAction) -> None:
 def source_from_args(args: argparse.Namespace) -> Source:
     if args.scenario:
         return SimulatorSource(
-            args.scenario, n_frames=args.frames, quick=not args.full, seed=args.seed, repeat=args.repeat
+            args.scenario,
+            n_frames=args.frames,
+            quick=not args.full,
+            seed=args.seed,
+            repeat=args.repeat,
+            **scenario_kwargs(args, args.scenario),
         )
     if args.uff:
         return UFFSource(args.uff, args.dataset, repeat=args.repeat)

@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 from services.cli.output import make_console, progress
+from services.cli.scenario_args import add_scenario_arguments, depth_note, scenario_kwargs
 
 __all__ = ["add_simulate_parser", "run_simulate"]
 
@@ -29,6 +30,7 @@ def add_simulate_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quick", action="store_true", help="the small variant that runs in seconds")
     p.add_argument("--frames", type=int, help="number of frames (default: the scenario's)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    add_scenario_arguments(p)
     p.set_defaults(func=run_simulate)
 
 
@@ -37,7 +39,7 @@ def run_simulate(args: argparse.Namespace) -> int:
     from fpcore.simulate import scenario
 
     console = make_console()
-    sc = scenario(args.scenario, quick=args.quick, seed=args.seed)
+    sc = scenario(args.scenario, quick=args.quick, seed=args.seed, **scenario_kwargs(args, args.scenario))
     n = sc.n_frames if args.frames is None else args.frames
     if not 1 <= n <= sc.n_frames:
         raise ValueError(f"--frames: expected 1 … {sc.n_frames} for {args.scenario}, got {n}")
@@ -47,6 +49,9 @@ def run_simulate(args: argparse.Namespace) -> int:
         f"{args.scenario}{' (quick)' if args.quick else ''}: {sc.probe.n_elements} elements, "
         f"{sc.sequence.n_waves} plane waves, {n} frames of {sc.frame_nbytes / 1e6:.1f} MB"
     )
+    note = depth_note(sc)
+    if note:
+        console.print(note)
     t = time.perf_counter()
     frames = []
     with progress(console) as bar:

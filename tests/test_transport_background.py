@@ -1,0 +1,162 @@
+"""The transport additions to the multiple-scattering background (fpcore.simulate.diffuse, single_scattering,
+medium.ScatteringLayer): dispersion ℓ_s(f), the beads' single scattering, reciprocity and coherent
+backscattering, and the ballistic echo filtered by ℓ_ext(f) (docs/design.md §6.3)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fpcore.acquisition import PlaneWaveSequence, Probe
+from fpcore.geometry import cosines
+from fpcore.simulate import scenario
+from fpcore.simulate.diffuse import aligned_spacing, reciprocal_pairs
+from fpcore.simulate.medium import DiffuseBackground, ScatteringLayer
+from fpcore.simulate.single_scattering import SingleScatteringField
+from fpcore.simulate.waves import Band, TimeWindow, radiate_points
+
+C0 = 1500.0
+
+
+def _layer(**kw) -> ScatteringLayer:
+    base = dict(z_surface=5e-3, ls=1.8e-3, la=8e-3, ls_exponent=4.0, f_ref=2.2e6, f_cross=1.54e6)
+    base.update(kw)
+    return ScatteringLayer(**base)
+
+
+def test_dispersion_law_is_anchored_rayleigh_below_the_crossover_and_saturates_above() -> None:
+    lay = _layer()
+    assert float(lay.ls_at(2.2e6)) == pytest.approx(1.8e-3)
+    lo = lay.ls_at(np.array([0.2e6, 0.4e6]))
+    assert lo[0] / lo[1] == pytest.approx(2.0**4, rel=0.01)  # Rayleigh: ℓ_s ∝ f^−4 for f ≪ f_cross
+    hi = lay.ls_at(np.array([20e6, 40e6]))
+    assert hi[0] / hi[1] == pytest.approx(1.0, abs=0.01)  # geometric: independent of f
+    pure = _layer(f_cross=0.0)
+    assert float(pure.ls_at(1.1e6)) == pytest.approx(1.8e-3 * 2.0**4)
+    assert float(lay.l_ext_at(2.2e6)) == pytest.approx(lay.l_ext)
+    with pytest.raises(ValueError, match="f_ref"):
+        ScatteringLayer(z_surface=5e-3, ls=1e-3, ls_exponent=4.0)
+
+
+def test_ballistic_echo_is_filtered_by_l_ext_of_each_frequency() -> None:
+    lay = _layer()
+    probe = Probe.linear(16, 0.34e-3, 2.2e6, 0.8e6)
+    sines = np.array([[0.0, 0.0], [0.1, 0.0]])
+    f = np.linspace(1.6e6, 2.8e6, 5)
+    r = np.array([1e-3, 0.0, 12e-3])
+    h0 = radiate_points(r[None, :], np.array([1e-3]), probe.positions, sines, f, C0, 2)
+    h = lay.attenuate(h0, r, 0.0, probe.positions, sines, freqs=f)
+    depth = r[2] - lay.z_surface
+    dist = np.linalg.norm(probe.positions - r[None, :], axis=1)
+    legs = dist[None, :, None] * depth / r[2] + depth / cosines(sines)[None, None, :]
+    expected = np.exp(-legs / (2 * lay.l_ext_at(f)[:, None, None])) * (1 - lay.reflection() ** 2)
+    np.testing.assert_allclose(np.abs(h / h0), expected, rtol=2e-5)
+    assert np.abs(h[-1] / h0[-1]).max() < np.abs(h[0] / h0[0]).min()  # high frequencies attenuated more
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_single_scattering_nufft_equals_the_direct_sum(dim: int) -> None:
+    """A(o, θ, f) = W_b (1 − R²) Σ_m η_m e^{−ik[(a − b)·x + (c_a + c_b) z]} (single_scattering module doc)."""
+    lay = _layer(single_scattering="field")
+    so = np.stack([np.linspace(-0.4, 0.4, 7), np.zeros(7) if dim == 2 else np.linspace(-0.3, 0.3, 7)], 1)
+    si = np.array([[-0.2, 0.0], [0.0, 0.0], [0.1, 0.05 if dim == 3 else 0.0]])
+    f = np.linspace(1.6e6, 2.8e6, 5)
+    sub, centres = [np.arange(0, 3), np.arange(3, 5)], np.array([1.9e6, 2.6e6])
+    ap = (3e-3, 3e-3 if dim == 3 else 0.0)
+    ss = SingleScatteringField(lay, so, 0.05, si, f, sub, centres, C0, dim, ap, 3e-3, np.random.default_rng(0))
+    ss.advance()
+    a = ss.spectrum()
+    assert ss.state is not None
+    xs = (np.arange(ss.nx) - ss.nx // 2) * ss.hx
+    ys = (np.arange(ss.ny) - ss.ny // 2) * ss.hx
+    x, y, d = np.meshgrid(xs, ys, ss.depths, indexing="ij")
+    co, ci = cosines(so), cosines(si)
+    ref = np.zeros_like(a)
+    for idx, fc in zip(sub, centres, strict=True):
+        ls, le, kc = float(lay.ls_at(fc)), float(lay.l_ext_at(fc)), 2 * np.pi * fc / C0
+        strength = 4 * np.pi / ls if dim == 3 else 4 * kc / ls
+        eta = ss.state * ss._beam[:, :, None] * np.exp(-d / le) * np.sqrt(strength * ss._cell)
+        for fi in idx:
+            k = 2 * np.pi * f[fi] / C0
+            for o in range(so.shape[0]):
+                w = -1j * k * 0.05**2 / (8 * np.pi**2 * co[o]) if dim == 3 else -1j * 0.05 / (4 * np.pi * co[o])
+                for t in range(si.shape[0]):
+                    lateral = (si[t, 0] - so[o, 0]) * x + ((si[t, 1] - so[o, 1]) * y if dim == 3 else 0.0)
+                    ph = np.exp(-1j * k * (lateral + (ci[t] + co[o]) * (lay.z_surface + d)))
+                    ref[o, t, fi] = w * ss._t_r * np.sum(eta * ph)
+    assert np.linalg.norm(a - ref) / np.linalg.norm(ref) < 1e-3
+
+
+def _small_2d(**kw) -> tuple[DiffuseBackground, Probe, PlaneWaveSequence, Band, TimeWindow]:
+    probe = Probe.linear(48, C0 / 2.2e6 / 2, 2.2e6, 0.8e6)
+    seq = PlaneWaveSequence.uniform_sines(9, 0.2)
+    band = Band(1.8e6, 2.6e6)
+    win = TimeWindow.covering(10.4e6, 16e-6, 40e-6, guard=20e-6)
+    lay = ScatteringLayer(z_surface=10e-3, ls=1.8e-3, la=8e-3, cbs=True, **kw)
+    bg = DiffuseBackground(
+        lay, probe.positions, seq.sines, win, band, C0, 2, 0.5 * probe.aperture[0], np.random.default_rng(3)
+    )
+    return bg, probe, seq, band, win
+
+
+def test_output_grid_is_aligned_with_the_transmits_and_pairs_are_involutions() -> None:
+    assert aligned_spacing(0.012, np.array([-0.2, -0.05, 0.0, 0.05, 0.2])) == pytest.approx(0.05 / 5)
+    assert aligned_spacing(0.012, np.array([0.0, 0.0123456, 0.031])) is None
+    bg, _, seq, _, _ = _small_2d()
+    po, pt = reciprocal_pairs(bg.s_out, seq.sines)
+    has = po >= 0
+    assert has.sum() == seq.n_waves**2  # every transmit pair (a, −b) lies on the output grid
+    o, t = np.nonzero(has)
+    assert np.array_equal(po[po[o, t], pt[o, t]], o) and np.array_equal(pt[po[o, t], pt[o, t]], t)
+    np.testing.assert_allclose(bg.s_out[po[o, t]], -seq.sines[t], atol=1e-12)
+    np.testing.assert_allclose(seq.sines[pt[o, t]], -bg.s_out[o], atol=1e-12)
+
+
+@pytest.mark.parametrize("single", ["envelope", "field"])
+def test_background_is_reciprocal(single: str) -> None:
+    """R(b, a) W_a = R(−a, −b) W_b with W = 1/c (the element-basis matrix is symmetric), MS and SS alike."""
+    bg, _, seq, _, _ = _small_2d(single_scattering=single)
+    bg.state = bg._noise()
+    a = bg.multiple_spectrum() * bg.weights[:, None, None]
+    if bg.single is not None:
+        bg.single.advance()
+        a = a + bg.single.spectrum()
+    po, pt = reciprocal_pairs(bg.s_out, seq.sines)
+    o, t = np.nonzero(po >= 0)
+    wa, wb = 1 / cosines(seq.sines)[t], 1 / cosines(bg.s_out)[o]
+    lhs = a[o, t] * wa[:, None]
+    rhs = a[po[o, t], pt[o, t]] * wb[:, None]
+    assert np.linalg.norm(lhs - rhs) / np.linalg.norm(lhs) < 1e-5
+    # Not trivially so: distinct pairs are independent.
+    assert abs(np.vdot(a[o[0], t[0]], a[o[1], t[1]])) < 0.5 * np.linalg.norm(a[o[0], t[0]]) * np.linalg.norm(
+        a[o[1], t[1]]
+    )
+
+
+def test_coherent_backscattering_doubles_the_retro_intensity() -> None:
+    """⟨|A(−a, a)|²⟩ / ⟨|A(b, a)|²⟩ ≈ 2 at exact retro-reflection, → 1 far outside the cone."""
+    retro, far = [], []
+    for seed in range(6):
+        bg, _, seq, _, _ = _small_2d()
+        bg.rng = np.random.default_rng(seed)
+        bg.state = bg._noise()
+        p = np.abs(bg.multiple_spectrum()) ** 2
+        sep = np.abs(bg.s_out[:, None, 0] + seq.sines[None, :, 0])
+        flat = (np.abs(bg.s_out[:, 0]) < 0.3)[:, None]
+        retro.append(p[(sep < 1e-9) & flat].mean())
+        far.append(p[(sep > 0.25) & flat].mean())
+    ratio = np.mean(retro) / np.mean(far)
+    assert 1.7 < ratio < 2.3
+
+
+def test_default_sinking_sphere_is_in_the_papers_regime() -> None:
+    """Paper conventions by default: centre depth 3.9–5 ℓ_s, no gain, calibration at (0, 0, 25) mm in water."""
+    sc = scenario("sinking-sphere", quick=True, n_frames=2)
+    lay = sc.layer
+    assert lay is not None and lay.gain == 1.0 and lay.attenuation_depth == "centre"
+    depths = [(pl.positions[:, 2] - lay.z_surface) / lay.ls for pl in sc.placements.values()]
+    assert min(d.min() for d in depths) > 3.8 and max(d.max() for d in depths) <= 5.0 + 1e-9
+    for name in sc.target_names:
+        np.testing.assert_allclose(sc.placements[name].calibration_position, [0.0, 0.0, 25e-3])
+    legacy = scenario("sinking-sphere", quick=True, n_frames=2, conventions="legacy")
+    assert legacy.layer is not None and legacy.layer.gain == 2.5 and legacy.layer.attenuation_depth == "front"
