@@ -25,9 +25,11 @@ def add_scenario_arguments(p: argparse.ArgumentParser, default_depth_ls: float |
     default = "the paper's: 4.7–5 and 3.9 ℓ_s" if default_depth_ls is None else f"{default_depth_ls:g}"
     p.add_argument(
         "--depth-ls",
-        type=number_in(0),
+        type=_depth,
         default=None,
-        help=f"sinking scenarios: the targets' centres this many ℓ_s below the surface (default {default})",
+        metavar="N|paper",
+        help=f"sinking scenarios: the targets' centres N ℓ_s below the surface, or 'paper' for the paper's depths "
+        f"(default {default})",
     )
     p.add_argument(
         "--conventions",
@@ -41,14 +43,21 @@ def scenario_kwargs(args: argparse.Namespace, name: str, default_depth_ls: float
     """The scenario keyword arguments these options ask for; a clear error for a scenario without them."""
     depth, conv = getattr(args, "depth_ls", None), getattr(args, "conventions", "paper")
     if name not in SINKING:
-        if conv != "paper" or depth is not None:
+        if conv != "paper" or depth not in (None, "paper"):
             raise ValueError(f"--depth-ls/--conventions: only for {', '.join(SINKING)}, not {name}")
         return {}
     depth = default_depth_ls if depth is None else depth
     out: dict[str, Any] = {"conventions": conv}
-    if depth is not None:
+    if depth is not None and depth != "paper":
         out["depth_ls"] = float(depth)
     return out
+
+
+def _depth(text: str) -> float | str:
+    """--depth-ls: 'paper' or a positive number of mean free paths."""
+    if text.strip().lower() == "paper":
+        return "paper"
+    return number_in(0)(text)
 
 
 def depth_note(sc: Any) -> str:
