@@ -183,6 +183,10 @@ def cbs_enhancement(
     |q| = |b + a| (bin_width, default the b step), normalised by its mean outside the cone; the
     enhancement is its value at q = 0 (pairs b = −a exactly; about 2 for reciprocal multiple scattering).
 
+    `flatness`: the rms deviation of the profile from 1 outside the cone (|q| > q_out); well above ~0.1 the
+    envelope is not separable (e.g. a small array seeing the medium in its far field, where the intensity
+    depends on b + a over the whole range) and the enhancement is not a cone height.
+
     Reciprocity: Q(a', a) = R(−a', a)/c_a (c = cosine; the obliquity of a transmit synthesised by the
     array, bench/foldy_lax_reference.py) is symmetric for a reciprocal medium; `reciprocity` is
     |Σ_{a≠a'} Q Q^T*| / Σ_{a≠a'} |Q|² over frequencies and realisations (1: symmetric; ≈ 0: independent).
@@ -233,7 +237,9 @@ def cbs_enhancement(
     prof = np.array(profile) / base
     peak = float(np.nanmean(pn[ret, np.arange(n_a)]) / base)
     rec = float(abs(num) / den) if exact and den > 0 else float("nan")
-    return {"enhancement": peak, "q": np.array(centres), "profile": prof, "reciprocity": rec}
+    qc = np.array(centres)
+    flat = float(np.std(prof[qc > q_out])) if np.any(qc > q_out) else float("nan")
+    return {"enhancement": peak, "q": qc, "profile": prof, "reciprocity": rec, "flatness": flat}
 
 
 def confocal_background(

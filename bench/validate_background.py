@@ -198,6 +198,11 @@ def report(res: dict[str, Any]) -> None:
             for tm, i in zip(marks, at, strict=True)
         )
     )
+    flat = [fl["cbs"]["flatness"], mod["cbs"]["flatness"]]
+    print(
+        f"  CBS profile rms off 1 outside the cone: FL {flat[0]:.2f}, model {flat[1]:.2f}"
+        + ("  (> 0.1: envelope not separable, the enhancement is not a cone height)" if max(flat) > 0.1 else "")
+    )
     print(
         f"  reciprocity (plane-wave Q vs Q^T): FL {fl['cbs']['reciprocity']:.3f}, "
         f"model {mod['cbs']['reciprocity']:.3f} (FL element basis max|K − Kᵀ|/max|K| = {res['asym']:.1e}); "

@@ -81,6 +81,7 @@ def test_cbs_enhancement_two_for_a_reciprocal_matrix_one_without() -> None:
     assert rec["enhancement"] == pytest.approx(2.0, rel=0.1)
     assert rec["reciprocity"] > 0.99
     assert rec["profile"][-1] == pytest.approx(1.0, rel=0.15)  # flat outside the cone
+    assert rec["flatness"] < 0.1
     v, freqs, el, sines, c0 = _array_data(symmetric=False)
     non = bm.cbs_enhancement(v, freqs, el, sines, c0, dim=2)
     assert non["enhancement"] == pytest.approx(1.0, rel=0.1)
