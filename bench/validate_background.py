@@ -3,7 +3,7 @@
     .venv/bin/python bench/validate_background.py                 # 2D (runs the FL reference if not cached)
     .venv/bin/python bench/validate_background.py --dim both
     .venv/bin/python bench/validate_background.py --dim 3 --quick
-    .venv/bin/python bench/validate_background.py --layer ls_exponent=-1 --layer cbs=True   # model options
+    .venv/bin/python bench/validate_background.py --layer cbs=True --layer single_scattering=field --match-dispersion
 
 The Foldy–Lax reference (bench/foldy_lax_reference.py, cached in out/bench/) and the model are built
 for the same geometry: array, finite-aperture plane-wave transmits, band, time window, a scattering
@@ -114,7 +114,9 @@ def measure(
     return {"t": t, "env": env, "fc": fc, "cbs": cbs, "ci": ci, "z_fit": z_fit}
 
 
-def compare(dim: int, quick: bool, n_model: int | None, layer_kw: dict[str, Any]) -> dict[str, Any]:
+def compare(
+    dim: int, quick: bool, n_model: int | None, layer_kw: dict[str, Any], match_dispersion: bool = False
+) -> dict[str, Any]:
     path = flr.default_path(dim, quick)
     if not path.exists():
         print(f"{path} missing: running the Foldy–Lax reference")
@@ -123,6 +125,10 @@ def compare(dim: int, quick: bool, n_model: int | None, layer_kw: dict[str, Any]
     freqs = data["freqs"]
     if not np.allclose(freqs, s.freqs()):
         raise SystemExit(f"{path}: frequencies differ from the setup's window (stale cache? delete it)")
+    if match_dispersion:  # ℓ_s(f) = ℓ_s(f_c) (f/f_c)^(−ls_exponent), fitted on the FL medium's ℓ_s(f)
+        expo = -float(np.polyfit(np.log(freqs / s.f_c), np.log(data["ls"]), 1)[0])
+        layer_kw = {**layer_kw, "ls_exponent": round(expo, 3), "f_ref": s.f_c}
+        print(f"  {dim}D model layer with the FL dispersion: ls_exponent = {expo:.3f}, f_ref = {s.f_c:g} Hz")
     sines = transmit_sines(dim)
     t0 = time.perf_counter()
     v_fl = flr.plane_waves(data["K"], freqs, s.elements(), sines, s.c0, s.pitch, dim)
@@ -284,6 +290,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="use (or make) the quick FL references")
     ap.add_argument("--model-realisations", type=int, default=None, help="default 24 (2D), 8 (3D)")
     ap.add_argument("--layer", action="append", default=[], help="extra ScatteringLayer field KEY=VALUE")
+    ap.add_argument(
+        "--match-dispersion", action="store_true", help="give the model the FL medium's ℓ_s(f) (ls_exponent, f_ref)"
+    )
     ap.add_argument("--png", default="out/bench/validate_background.png")
     args = ap.parse_args(argv)
     try:
@@ -298,7 +307,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"model: fpcore.simulate.medium at {model_commit()}; layer options {layer_kw or 'none (defaults)'}")
     results = []
     for dim in (2, 3) if args.dim == "both" else (int(args.dim),):
-        res = compare(dim, args.quick, args.model_realisations, layer_kw)
+        res = compare(dim, args.quick, args.model_realisations, layer_kw, args.match_dispersion)
         report(res)
         results.append(res)
     plot(results, Path(args.png))
