@@ -1,9 +1,10 @@
 """Foldy–Lax reference of the multiple-scattering background (issue 12): a slab of point scatterers under
 water, probed by an array in reflection, exact multiple scattering (fpcore.simulate.foldy_lax).
 
-    .venv/bin/python bench/foldy_lax_reference.py --dim 2            # ~5-8 min on 2 cores
-    .venv/bin/python bench/foldy_lax_reference.py --dim 3 --quick    # ~1-2 min
-    .venv/bin/python bench/foldy_lax_reference.py --dim 3            # ~10-15 min
+    .venv/bin/python bench/foldy_lax_reference.py --dim 2            # 23 min (2 cores shared, load ~3.6)
+    .venv/bin/python bench/foldy_lax_reference.py --dim 2 --quick    # 3 min (same load)
+    .venv/bin/python bench/foldy_lax_reference.py --dim 3 --quick    # 2 min
+    .venv/bin/python bench/foldy_lax_reference.py --dim 3            # 23 min (same load; ~3 × 83 LUs of 3900²)
 
 Scaling (paper Supplementary S1, granular suspension): ℓ_s = 1.8 mm at f_c = 2.2 MHz, λ = 0.68 mm
 (c0 = 1500 m/s), band 1.8–2.6 MHz (−6 dB; the Hann support 1.4–3.0 MHz is computed). The slab is
