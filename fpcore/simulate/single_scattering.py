@@ -11,7 +11,7 @@ the coherent (extinguished) medium, transmit θ (sine a, cosine c_a) and an upgo
 
 with d_m = z_m − z_s the depth below the surface, e^{−d/ℓ_ext(f)} the extinction of both legs at
 normal incidence (obliquity neglected: the legs' factors 1/c_a, 1/c_b ≤ 1.15 within ±0.5 of the axis),
-w(x) the lateral extent of the transmitted beam (the aperture widened by the steering, a smooth edge)
+w(x) the lateral extent of a transmitted beam (the aperture and its diffraction spread, a smooth edge)
 and W_b the plane-wave (Weyl) weight of the Green function on the output grid of spacing Δs:
 e^{−ikR}/(4πR) = (−ik/8π²) ∫ d²b e^{−ik(b·x + c_b|z|)}/c_b, so W_b = −ik Δs²/(8π² c_b) (3D), and
 (−i/4)H₀⁽²⁾(kR) = (−i/4π) ∫ db e^{−ik(b x + c_b|z|)}/c_b, W_b = −iΔs/(4π c_b) (2D). The
@@ -82,11 +82,13 @@ class SingleScatteringField:
         self.nz = max(4, int(np.ceil(depth_max / hz)) + 1)
         self.hz = hz
         self.depths = np.arange(self.nz) * hz
-        # Lateral extent of the insonified beam: the aperture, widened by the steering at the deepest depth.
-        steer = np.abs(si).max(axis=0) if si.size else np.zeros(2)
-        half = [0.5 * aperture[d] + steer[d] * (z_s + depth_max) + 1e-3 for d in range(2)]
-        self.nx = 2 * int(np.ceil(1.15 * half[0] / hx)) + 1
-        self.ny = 2 * int(np.ceil(1.15 * half[1] / hx)) + 1 if dim == 3 else 1
+        # Lateral extent of one transmitted beam: the aperture D plus its diffraction spread λ z/D at the deepest
+        # depth (a steered transmit shifts its beam by s·z without widening it; the shift is neglected).
+        lam = c0 / float(np.mean(self.freqs))
+        z_far = z_s + depth_max
+        half = [0.5 * aperture[d] + 0.5 * lam * z_far / max(aperture[d], lam) for d in range(2)]
+        self.nx = 2 * int(np.ceil(1.15 * half[0] / hx)) + 2
+        self.ny = 2 * int(np.ceil(1.15 * half[1] / hx)) + 2 if dim == 3 else 1
         self.hx = hx
         xs = (np.arange(self.nx) - self.nx // 2) * hx
         ys = (np.arange(self.ny) - self.ny // 2) * hx
