@@ -69,6 +69,9 @@ class ScatteringLayer:
     sound speed (m/s) of the effective medium for the interface echo; energy_velocity (m/s, default
     c0); frame_displacement: rms displacement of the scatterers between frames (m);
     envelope: "escape" (default) or "diffusion" (module doc); gain multiplies the background power.
+    Transport additions (`diffuse` module doc, docs/design.md §6.3): ls_exponent, f_ref, f_cross give
+    ℓ_s(f) (`ls_at`); single_scattering "envelope" (all orders in the Gaussian field) or "field" (the first
+    order as a focused speckle, `single_scattering`); cbs: reciprocity and coherent backscattering.
     """
 
     z_surface: float

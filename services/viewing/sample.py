@@ -7,6 +7,7 @@ digitised by a ``adc_bits`` ADC as a scanner would (int16 RF with its scale), ru
 from __future__ import annotations
 
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 from services.recording import MESSAGE_ENCODING, copy_messages, iter_raw
@@ -15,11 +16,17 @@ __all__ = ["make_sample_recording"]
 
 
 def make_sample_recording(
-    path: str | Path, n_frames: int = 3, spacing: float = 0.5e-3, adc_bits: int = 10, drop: tuple[str, ...] = ()
+    path: str | Path,
+    n_frames: int = 3,
+    spacing: float = 0.5e-3,
+    adc_bits: int = 10,
+    drop: tuple[str, ...] = (),
+    depth_ls: float = 2.0,
 ) -> dict[str, int]:
-    """Record the quick sinking-sphere scenario with the project's pipeline (the scenario's region of interest,
-    grid step ``spacing``; RF through an ``adc_bits`` ADC) and copy it to ``path`` (zstd chunks) without the
-    ``drop`` topics. Returns the message count per key."""
+    """Record the quick sinking-sphere scenario with the project's pipeline (the spheres `depth_ls` mean free
+    paths deep, as in `fp demo`; the scenario's region of interest from 1 mm under the surface, grid step
+    ``spacing``; RF through an ``adc_bits`` ADC) and copy it to ``path`` (zstd chunks) without the ``drop``
+    topics. Returns the message count per key."""
     from mcap.writer import CompressionType, Writer
 
     from fpcore.simulate import scenario
@@ -30,8 +37,9 @@ def make_sample_recording(
 
     roi = scenario("sinking-sphere", quick=True).roi
     assert roi is not None  # the scenario defines the region it is imaged over
-    grid = roi.grid(spacing)
-    source = QuantisedSource(SimulatorSource("sinking-sphere", n_frames=n_frames, quick=True), adc_bits)
+    grid = replace(roi, z_range=(17e-3, roi.z_range[1])).grid(spacing)  # 2 ℓ_s deep spheres start at 19.6 mm
+    sim = SimulatorSource("sinking-sphere", n_frames=n_frames, quick=True, depth_ls=depth_ls)
+    source = QuantisedSource(sim, adc_bits)
     with tempfile.TemporaryDirectory() as tmp:
         summary = run_pipeline(
             source,
@@ -51,8 +59,9 @@ def make_sample_recording(
                 {
                     "wire": "FPWIRE01",
                     "message_encoding": MESSAGE_ENCODING,
-                    "sample": f"sinking-sphere quick, {n_frames} frames, {adc_bits}-bit RF, grid step "
-                    f"{spacing * 1e3:g} mm" + (f", without {', '.join(drop)}" if drop else ""),
+                    "sample": f"sinking-sphere quick, spheres {depth_ls:g} ℓ_s deep, {n_frames} frames, "
+                    f"{adc_bits}-bit RF, grid step {spacing * 1e3:g} mm"
+                    + (f", without {', '.join(drop)}" if drop else ""),
                 },
             )
             kept = copy_messages(w, sources)
