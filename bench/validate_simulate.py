@@ -234,14 +234,6 @@ PAPER = {
 }
 
 
-def target_only(sc: sim.Scenario, name: str, i: int) -> fpcore.Acquisition:
-    """Frame i with only target `name`, through the medium (no background, interface or noise): its echo."""
-    pl = sc.placements[name]
-    h = sc._moving_target_h(pl, i) if pl.moving else sc._target_h(pl, pl.position(i), pl.in_medium)
-    rf = sc.window.synthesize(h * sc.pulse.spectrum(sc.freqs).astype(np.float32)[:, None, None], sc.bins)
-    return sc._acquisition(rf, i, sc.ground_truth(i))
-
-
 def reverberation_n_t(cal: fpcore.Acquisition, band: tuple[float, float]) -> float:
     """The paper's N_T ∼ Δf Δt with Δt the time the calibration echo stays above −20 dB of its peak."""
     env = np.sqrt(np.mean(cal.rf.astype(np.float64) ** 2, axis=(0, 1)))
@@ -293,7 +285,7 @@ def headline(quick: bool, frames: list[int], configs: dict[str, dict] | None = N
             conf_fog = imager_c.confocal(imager_c.plane_waves(fog.frame(i)))
             for tg in acq.ground_truth.targets or []:
                 r, a = tg.position, 0.5 * tg.diameter
-                conf_t = imager_c.confocal(imager_c.plane_waves(target_only(sc, tg.name, i)))
+                conf_t = imager_c.confocal(imager_c.plane_waves(sc.target_echo(tg.name, i)))
                 near = sum((m - c) ** 2 for m, c in zip(mesh, r, strict=True)) < (a + 1.5e-3) ** 2
                 ib = np.unravel_index(np.argmax(np.where(near, conf_t, 0.0)), conf_t.shape)
                 c_i = float(conf_t[ib] / conf_fog[np.abs(mesh[2] - grid_c.z[ib[2]]) < 0.5e-3].mean())
@@ -375,8 +367,8 @@ def why_c_gamma(quick: bool = True, frame: int = 0) -> list[dict]:
         imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=band))
         if sc_key not in frames:
             if sc_name == "no background":  # targets attenuated by the medium, no fog: the medium's layer for H only
-                acq = target_only(base, "sphere1", frame)
-                both = acq.rf + target_only(base, "sphere2", frame).rf
+                acq = base.target_echo("sphere1", frame)
+                both = acq.rf + base.target_echo("sphere2", frame).rf
                 frames[sc_key] = base._acquisition(both, frame, base.ground_truth(frame))
             else:
                 frames[sc_key] = sc.frame(frame)

@@ -293,6 +293,14 @@ class Scenario:
         ]
         return np.concatenate(cols, axis=2)
 
+    def target_echo(self, name: str, i: int) -> Acquisition:
+        """Frame i with only target `name`, through the medium (no background, interface or noise): its own
+        echo, e.g. for the confocal contrast C_I of the paper's eq. (1) against `without_targets()`."""
+        pl = self.placements[name]
+        h = self._moving_target_h(pl, i) if pl.moving else self._target_h(pl, pl.position(i), pl.in_medium)
+        rf = self.window.synthesize(h * self.pulse.spectrum(self.freqs).astype(np.float32)[:, None, None], self.bins)
+        return self._acquisition(rf, i, self.ground_truth(i))
+
     def without_targets(self) -> Scenario:
         """The same rig, medium and noise with no target in the scene: fog-only frames, the null
         hypothesis a false-alarm probability is checked on (calibrations still work)."""
