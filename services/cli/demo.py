@@ -21,7 +21,7 @@ from services.cli.scenario_args import add_scenario_arguments, depth_note, scena
 
 __all__ = ["add_demo_parser", "cmd_demo", "DEMO_DEPTH_LS"]
 
-#: The demo's depth (ℓ_s below the surface) for the sinking scenarios: shallower than the paper's 3.9–5 ℓ_s,
+#: The demo's depth (ℓ_s below the surface) for the sinking scenarios: shallower than the paper's regime,
 #: where the method does not find the spheres in this simulator (README, "The paper's regime").
 DEMO_DEPTH_LS = 2.0
 

@@ -22,13 +22,13 @@ def add_scenario_arguments(p: argparse.ArgumentParser, default_depth_ls: float |
     --conventions."""
     from fpcore.simulate.scenarios import CONVENTIONS
 
-    default = "the paper's: 4.7–5 and 3.9 ℓ_s" if default_depth_ls is None else f"{default_depth_ls:g}"
+    default = "the paper's regime, 5.6–6.1 ℓ_s" if default_depth_ls is None else f"{default_depth_ls:g}"
     p.add_argument(
         "--depth-ls",
         type=_depth,
         default=None,
         metavar="N|paper",
-        help=f"sinking scenarios: the targets' centres N ℓ_s below the surface, or 'paper' for the paper's depths "
+        help=f"sinking scenarios: the targets' centres N ℓ_s below the surface, or 'paper' for the paper's regime "
         f"(default {default})",
     )
     p.add_argument(
@@ -71,4 +71,4 @@ def depth_note(sc: Any) -> str:
             z = (pl.positions[:, 2] - lay.z_surface) / lay.ls
             span = f"{z.min():.1f}" if np.ptp(z) < 0.05 else f"{z[0]:.1f} → {z[-1]:.1f}"
             parts.append(f"{name} {span} ℓ_s")
-    return "targets' centres below the surface: " + ", ".join(parts) + " (the paper's: 3.9–5 ℓ_s)"
+    return "targets' centres below the surface: " + ", ".join(parts) + " (the paper's regime: 5.6–6.1 ℓ_s)"
