@@ -250,6 +250,7 @@ def headline(quick: bool, frames: list[int], configs: dict[str, dict] | None = N
     Cramér–Rao radius."""
     configs = configs or {
         "paper (default)": {},
+        "paper's stated positions": {"sink": sim.scenarios.PAPER_POSITIONS[0], "sphere2_depth": 7e-3},
         "depth 3 ℓ_s": {"depth_ls": 3.0},
         "depth 2 ℓ_s (demo)": {"depth_ls": 2.0},
         "legacy": {"conventions": "legacy"},
