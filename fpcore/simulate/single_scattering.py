@@ -26,10 +26,15 @@ update of the grid's white noise.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import finufft
 import numpy as np
 
 from ..geometry import cosines
+
+if TYPE_CHECKING:
+    from .medium import ScatteringLayer
 
 __all__ = ["SingleScatteringField"]
 
@@ -45,7 +50,7 @@ class SingleScatteringField:
 
     def __init__(
         self,
-        layer,  # noqa: ANN001 - ScatteringLayer (import cycle)
+        layer: ScatteringLayer,
         s_out: np.ndarray,
         ds: float,
         sines: np.ndarray,
