@@ -99,15 +99,20 @@ class Probe:
 
     def grid_axes(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(x, y) axes if elements form a full regular grid in x-fastest order, else None."""
-        pos = self.positions
-        xs = np.unique(pos[:, 0])
-        ys = np.unique(pos[:, 1])
-        if xs.size * ys.size != pos.shape[0]:
-            return None
-        yy, xx = np.meshgrid(ys, xs, indexing="ij")
-        if np.allclose(pos[:, 0], xx.ravel()) and np.allclose(pos[:, 1], yy.ravel()):
-            return xs, ys
+        return element_grid_axes(self.positions)
+
+
+def element_grid_axes(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(x, y) axes if element positions (N, 3) form a full regular grid in x-fastest order, else None."""
+    pos = np.asarray(positions, dtype=np.float64)
+    xs = np.unique(pos[:, 0])
+    ys = np.unique(pos[:, 1])
+    if xs.size * ys.size != pos.shape[0]:
         return None
+    yy, xx = np.meshgrid(ys, xs, indexing="ij")
+    if np.allclose(pos[:, 0], xx.ravel()) and np.allclose(pos[:, 1], yy.ravel()):
+        return xs, ys
+    return None
 
 
 @dataclass(frozen=True)

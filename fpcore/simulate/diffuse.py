@@ -39,6 +39,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import scipy.fft as sfft
 
+from ..acquisition import element_grid_axes
 from ..geometry import cosines
 from .single_scattering import SingleScatteringField
 from .waves import Band, TimeWindow
@@ -135,7 +136,7 @@ class DiffuseBackground:
         self.s_out = so[keep]
         self._axes = axes
         self._keep = keep
-        self._grid = self._element_grid(el) if dim == 3 else None
+        self._grid = element_grid_axes(el) if dim == 3 else None
         x = np.clip((smag[keep] / self.s_d - 0.85) / 0.3, 0.0, 1.0)
         c_o = cosines(self.s_out)
         # Taper × the plane-wave (Weyl) weight 1/c_o of a point source's spectrum, so that a reciprocal noise
@@ -220,17 +221,6 @@ class DiffuseBackground:
         if self.n_reciprocal_pairs:
             out[self._copy_dst] = out[self._copy_src]
         return out
-
-    @staticmethod
-    def _element_grid(el: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """(x, y) axes if the elements form a full x-fastest grid (separable projection), else None."""
-        xs, ys = np.unique(el[:, 0]), np.unique(el[:, 1])
-        if xs.size * ys.size != el.shape[0]:
-            return None
-        yy, xx = np.meshgrid(ys, xs, indexing="ij")
-        if np.allclose(el[:, 0], xx.ravel()) and np.allclose(el[:, 1], yy.ravel()):
-            return xs, ys
-        return None
 
     def _project(self, aw: np.ndarray) -> np.ndarray:
         """M(f, u, θ) = Σ_o aw(o, θ, f) e^{−ik s_o·u} for weighted amplitudes aw (N_o, N_θ, N_f).

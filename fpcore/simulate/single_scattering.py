@@ -109,6 +109,7 @@ class SingleScatteringField:
         g = layer.correlation_single(c0, float(np.mean(self.freqs))) if layer.frame_displacement > 0 else None
         self.g1 = g
         self.state: np.ndarray | None = None
+        self._plans: list[tuple] | None = None  # per sub-band, built at the first spectrum
 
     def _white(self) -> np.ndarray:
         shape = (self.nx, self.ny, self.nz)
@@ -127,50 +128,56 @@ class SingleScatteringField:
             self.state *= g
             self.state += self._white() * np.float32(np.sqrt(max(0.0, 1.0 - self.g1**2)))
 
+    def _sub_band(self, idx: np.ndarray, fc: float) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray]:
+        """What a frame does not change, per sub-band: the depth profile, the NUFFT points and the factor
+        applied after it (module doc)."""
+        lay = self.layer
+        ls, lext = float(lay.ls_at(fc)), float(lay.l_ext_at(fc))
+        kc = 2 * np.pi * fc / self.c0
+        strength = (4 * np.pi / ls) if self.dim == 3 else (4 * kc / ls)  # n|t|² (module doc)
+        # The depth profile: extinction of both legs, the scattering strength, and e^{−i k_z0 d} (the axial
+        # carrier taken out of the NUFFT's spatial frequencies below).
+        depth_w = np.exp(-self.depths / lext - 1j * self._kz0 * self.depths) * np.sqrt(strength * self._cell)
+        k = 2 * np.pi * self.freqs[idx] / self.c0  # (n_f,)
+        kx = (k[None, None, :] * self._qx[:, :, None]).ravel()
+        kz = (k[None, None, :] * self._qz[:, :, None]).ravel()
+        # e^{−iK·r}: r = (x, y, z_s + d); d_m = m hz (m ≥ 0) → modes centred: d = (m' + nz/2) hz with
+        # finufft's modes m' ∈ [−nz/2, nz/2); the axial frequency is demodulated by k_z0.
+        points = [(kx * self.hx).astype(np.float32)]
+        if self.dim == 3:
+            points.append((k[None, None, :] * self._qy[:, :, None]).ravel().astype(np.float32) * np.float32(self.hx))
+        points.append(((kz - self._kz0) * self.hz).astype(np.float32))
+        # Phase of the depth origin (d = 0 at mode −nz//2) and of the surface, e^{−i k_z z_s}; Weyl weight; 1 − R².
+        m0 = self.nz // 2
+        ph = np.exp(-1j * ((kz - self._kz0) * self.hz * m0 + kz * self.layer.z_surface)).reshape(
+            self.n_o, self.n_i, idx.size
+        )
+        if self.dim == 3:
+            weyl = (-1j * k[None, :] * self._ds2 / (8 * np.pi**2 * self._co[:, None]))[:, None, :]
+        else:
+            weyl = (-1j * self._ds2 / (4 * np.pi * self._co[:, None]) * np.ones_like(k)[None, :])[:, None, :]
+        post = (ph * weyl * self._t_r).astype(np.complex64)
+        return (self._beam[:, :, None] * depth_w[None, None, :]).astype(np.complex64), tuple(points), post
+
     def spectrum(self) -> np.ndarray:
         """A(o, θ, f) (N_o, N_θ, N_f) complex64 for the current grid (module doc)."""
         if self.state is None:
             self.advance()
         assert self.state is not None
+        if self._plans is None:
+            self._plans = [
+                (idx, *self._sub_band(idx, fc))
+                for idx, fc in zip(self.sub_bands, self.centres, strict=True)
+                if idx.size
+            ]
         out = np.zeros((self.n_o, self.n_i, self.freqs.size), dtype=np.complex64)
-        z_s, lay = self.layer.z_surface, self.layer
-        for idx, fc in zip(self.sub_bands, self.centres, strict=True):
-            if idx.size == 0:
-                continue
-            ls, lext = float(lay.ls_at(fc)), float(lay.l_ext_at(fc))
-            kc = 2 * np.pi * fc / self.c0
-            strength = (4 * np.pi / ls) if self.dim == 3 else (4 * kc / ls)  # n|t|² (module doc)
-            # The depth profile: extinction of both legs, the scattering strength, and e^{−i k_z0 d} (the axial
-            # carrier taken out of the NUFFT's spatial frequencies below).
-            depth_w = np.exp(-self.depths / lext - 1j * self._kz0 * self.depths) * np.sqrt(strength * self._cell)
-            grid = self.state * (self._beam[:, :, None] * depth_w[None, None, :].astype(np.complex64))
-            k = 2 * np.pi * self.freqs[idx] / self.c0  # (n_f,)
-            kx = (k[None, None, :] * self._qx[:, :, None]).ravel()
-            kz = (k[None, None, :] * self._qz[:, :, None]).ravel()
-            # e^{−iK·r}: r = (x, y, z_s + d); d_m = m hz (m ≥ 0) → modes centred: d = (m' + nz/2) hz with
-            # finufft's modes m' ∈ [−nz/2, nz/2); the axial frequency is demodulated by k_z0.
-            pz = ((kz - self._kz0) * self.hz).astype(np.float32)
-            px = (kx * self.hx).astype(np.float32)
-            vals: np.ndarray
+        for idx, profile, points, post in self._plans:
+            grid = np.ascontiguousarray(self.state * profile)
             if self.dim == 3:
-                ky = (k[None, None, :] * self._qy[:, :, None]).ravel()
-                py = (ky * self.hx).astype(np.float32)
-                vals = finufft.nufft3d2(
-                    px, py, pz, np.ascontiguousarray(grid, dtype=np.complex64), isign=-1, eps=1e-4, modeord=0
-                )
+                vals = finufft.nufft3d2(*points, grid, isign=-1, eps=1e-4, modeord=0)
             else:
-                vals = finufft.nufft2d2(
-                    px, pz, np.ascontiguousarray(grid[:, 0, :], dtype=np.complex64), isign=-1, eps=1e-4, modeord=0
-                )
-            vals = vals.reshape(self.n_o, self.n_i, idx.size)
-            # Phase of the depth origin: d = 0 at mode −nz//2 → e^{−i(kz − kz0) hz (nz//2)}; and e^{−i kz z_s}.
-            m0 = self.nz // 2
-            ph = np.exp(-1j * ((kz - self._kz0) * self.hz * m0 + kz * z_s)).reshape(self.n_o, self.n_i, idx.size)
-            if self.dim == 3:
-                weyl = (-1j * k[None, :] * self._ds2 / (8 * np.pi**2 * self._co[:, None]))[:, None, :]
-            else:
-                weyl = (-1j * self._ds2 / (4 * np.pi * self._co[:, None]) * np.ones_like(k)[None, :])[:, None, :]
-            out[:, :, idx] = (vals * ph * weyl * self._t_r).astype(np.complex64)
+                vals = finufft.nufft2d2(*points, np.ascontiguousarray(grid[:, 0, :]), isign=-1, eps=1e-4, modeord=0)
+            out[:, :, idx] = vals.reshape(self.n_o, self.n_i, idx.size) * post
         return out
 
     @property
