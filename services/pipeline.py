@@ -18,7 +18,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -486,22 +486,26 @@ class Pipeline:
             return {"params": self.params(), "entries": [e.describe() for e in self._entries.values()]}
 
     # -- processing --------------------------------------------------------------------------------------
-    def process(self, acq: Acquisition) -> FrameResult:
+    def process(
+        self, acq: Acquisition, names: Collection[str] | None = None, with_image: bool | None = None
+    ) -> FrameResult:
         """γ-maps, image, detections and tracks of one frame (set-up first if its geometry is new); each
-        detection comes with its distance to the nearest truth target of the same name, else of any name."""
+        detection comes with its distance to the nearest truth target of the same name, else of any name.
+        ``names``: only these fingerprints (a γ worker's share, services.nodes.worker; None: all);
+        ``with_image``: compute the confocal image or not (None: ``publish_image``)."""
         with self.lock:
             if self._geom != geometry_key(acq):
                 self.setup(acq)
             self._last_acq = acq
             imager, band = self._imager, self._band
             assert imager is not None and band is not None
-            fps = {n: e.fp for n, e in self._entries.items() if e.fp is not None}
+            fps = {n: e.fp for n, e in self._entries.items() if e.fp is not None and (names is None or n in names)}
             cfg = self.cfg
             t0 = time.perf_counter()
             pw = imager.plane_waves(acq)
             t1 = time.perf_counter()
             gammas = {n: imager.gamma(pw, fp) for n, fp in fps.items()}
-            image = imager.confocal(pw) if cfg.publish_image else None
+            image = imager.confocal(pw) if (cfg.publish_image if with_image is None else with_image) else None
             t2 = time.perf_counter()
             grid = imager.grid
             truths = truth_positions(acq.ground_truth)
