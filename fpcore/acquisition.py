@@ -218,7 +218,7 @@ class Acquisition:
         fc, bw = self.probe.centre_frequency, self.probe.bandwidth
         return max(fc - bw / 2, 0.0), min(fc + bw / 2, self.fs / 2)
 
-    def spectrum(self, f_min: float, f_max: float, n_freq: int | None = None, pad: int = 2) -> Spectrum:
+    def spectrum(self, f_min: float, f_max: float, n_freq: int | None = None, pad: int = 2, xp: Any = None) -> Spectrum:
         """Band [f_min, f_max] of R(f) = ∫ R(t) e^{-i2πft} dt (paper eq. 0, docs/design.md §4.1).
 
         Frequency sampling sets the unambiguous delay window 1/Δf of every map: a fingerprint shifted
@@ -227,6 +227,8 @@ class Acquisition:
         for pad ≥ 2; pad = 1 gives the record's own DFT bins). With
         n_freq given, n_freq bins evenly spread over the band are kept (window = (n_freq − 1)/band
         width; choose n_freq ≥ band width × (record + target echo duration)). The phase accounts for t0.
+        xp: an array module (CuPy: the FFT runs on the GPU and `Spectrum.data` stays there,
+        docs/design.md §5); None: numpy/scipy.
         """
         if not (0 <= f_min < f_max <= self.fs / 2):
             raise ValueError(
@@ -246,18 +248,24 @@ class Acquisition:
             raise ValueError(f"band: no frequency bin in [{f_min:g}, {f_max:g}] Hz")
         if n_freq is not None and band.size > n_freq:
             band = band[np.round(np.linspace(0, band.size - 1, n_freq)).astype(int)]
-        rf = self.rf.astype(np.float32, copy=False)
-        spec = sfft.rfft(rf, n=n_fft, axis=2, workers=-1)[:, :, band]
         f = freqs_all[band]
         # Time origin t0: R(f) = Σ_n R(t0 + n/fs) e^{-i2πf(t0 + n/fs)} / fs.
         phase = (np.exp(-2j * np.pi * f * self.t0) / self.fs).astype(np.complex64)
-        data = np.ascontiguousarray(np.transpose(spec * phase, (2, 0, 1))).astype(np.complex64)
+        if xp is None:
+            rf = self.rf.astype(np.float32, copy=False)
+            spec = sfft.rfft(rf, n=n_fft, axis=2, workers=-1)[:, :, band]
+            data = np.ascontiguousarray(np.transpose(spec * phase, (2, 0, 1))).astype(np.complex64)
+        else:  # the RF travels in its own dtype (int16 halves the copy), then float32 on the device
+            rf = xp.asarray(self.rf).astype(xp.float32, copy=False)
+            spec = xp.fft.rfft(rf, n=n_fft, axis=2)[:, :, xp.asarray(band)]
+            data = xp.ascontiguousarray(xp.transpose(spec * xp.asarray(phase), (2, 0, 1))).astype(xp.complex64)
         return Spectrum(data, f, self.c0, self.probe, self.sequence)
 
 
 @dataclass
 class Spectrum:
-    """R(f, u_out, θ_in): complex (N_f, N_u, N_θ) restricted to a band."""
+    """R(f, u_out, θ_in): complex (N_f, N_u, N_θ) restricted to a band (`data` on the device when built
+    with an array module `xp`, `Acquisition.spectrum`)."""
 
     data: np.ndarray
     freqs: np.ndarray
@@ -355,12 +363,14 @@ def _tensor_axes(sines: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     return sx, sy, iy.ravel() * sx.size + ix.ravel()
 
 
-def to_plane_waves(spec: Spectrum, out_sines: np.ndarray) -> PlaneWaveData:
+def to_plane_waves(spec: Spectrum, out_sines: np.ndarray, xp: Any = None) -> PlaneWaveData:
     """R_θθ(f) = P_θu(f) R_uθ(f), P_θu = exp(-i k s_θ·u) (docs/design.md §4.2, paper Methods).
 
     For a regular matrix array and a tensor grid of output sines the projection is separable
-    (x then y), which costs N_x + N_y instead of N_x N_y per coefficient.
+    (x then y), which costs N_x + N_y instead of N_x N_y per coefficient. xp: the array module of
+    `spec.data` (CuPy: the products run on the GPU, the result's `data` stays there); None: numpy.
     """
+    xp = np if xp is None else xp
     out = _as_sines(out_sines)
     k = 2 * np.pi * spec.freqs / spec.c0
     pos = spec.probe.positions
@@ -373,12 +383,12 @@ def to_plane_waves(spec: Spectrum, out_sines: np.ndarray) -> PlaneWaveData:
         px = np.exp(-1j * k[:, None, None] * sx[None, :, None] * ux[None, None, :]).astype(np.complex64)
         py = np.exp(-1j * k[:, None, None] * sy[None, :, None] * uy[None, None, :]).astype(np.complex64)
         r = spec.data.reshape(n_f, uy.size, ux.size, n_i)
-        r = np.matmul(px[:, None], r)  # (f, uy, sx, i)
-        r = np.matmul(py, r.reshape(n_f, uy.size, sx.size * n_i))  # (f, sy, sx*i)
-        data = r.reshape(n_f, sy.size * sx.size, n_i)[:, flat]
+        r = xp.matmul(xp.asarray(px)[:, None], r)  # (f, uy, sx, i)
+        r = xp.matmul(xp.asarray(py), r.reshape(n_f, uy.size, sx.size * n_i))  # (f, sy, sx*i)
+        data = r.reshape(n_f, sy.size * sx.size, n_i)[:, xp.asarray(flat)]
     else:
         phase = np.exp(-1j * k[:, None, None] * (out @ pos[:, :2].T)[None]).astype(np.complex64)
-        data = np.matmul(phase, spec.data)
+        data = xp.matmul(xp.asarray(phase), spec.data)
     return PlaneWaveData(
-        np.ascontiguousarray(data, dtype=np.complex64), spec.freqs.copy(), out, spec.sequence.sines.copy(), spec.c0
+        xp.ascontiguousarray(data, dtype=np.complex64), spec.freqs.copy(), out, spec.sequence.sines.copy(), spec.c0
     )

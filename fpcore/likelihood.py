@@ -25,15 +25,20 @@ from .acquisition import Acquisition, PlaneWaveData, Probe, output_sines, to_pla
 from .fingerprint import Fingerprint, angular_mask, check_geometry
 from .grid import Grid
 from .kernel import GridTransform, Kernel, KernelType, wavevectors
+from .kernel_gpu import GpuTransform
 from .kernel_presum import PresumTransform
 
 __all__ = ["Imager", "ImagingConfig", "KERNELS", "make_kernel"]
 
 #: The kernel classes by name (docs/design.md §5); kernel="auto" takes the first, in this order, that
-#: supports the geometry: the lattice pre-sum kernel, else the general finufft type-1.
-KERNELS: dict[str, KernelType] = {"presum": PresumTransform, "nufft": GridTransform}
+#: supports the geometry: cufinufft on a CUDA device when one is usable and FP_DEVICE is not 'cpu'
+#: (fpcore.kernel_gpu), the lattice pre-sum kernel, else the general finufft type-1.
+KERNELS: dict[str, KernelType] = {"gpu": GpuTransform, "presum": PresumTransform, "nufft": GridTransform}
 
-_REQUIRES = {"presum": "transmit and output sines on one lattice (and numba)"}
+_REQUIRES = {
+    "presum": "transmit and output sines on one lattice (and numba)",
+    "gpu": "a usable CUDA device with CuPy and cufinufft (the 'gpu' extra) and FP_DEVICE not 'cpu'",
+}
 
 
 def make_kernel(kind: str, pw: PlaneWaveData, grid: Grid, eps: float) -> Kernel:
@@ -92,7 +97,7 @@ class ImagingConfig:
     output directions (None: sampled from the probe, `output_sines`), grid, NUFFT accuracy.
 
     kernel: 'auto' (structured pre-sum kernel when the sines allow it, else finufft) or a name of
-    `KERNELS`: 'nufft' or 'presum' (`make_kernel`).
+    `KERNELS`: 'gpu', 'nufft' or 'presum' (`make_kernel`).
     apodization_tiles: split the grid into this many tiles per axis and apply the shift apodization
     A(θ_out, r) A(θ_in, r) of paper eq. BF at each tile's centre (docs/design.md §5); None: no shift apodization
     (the angular filter acts at r0 only and ‖F(r)‖ is constant).
