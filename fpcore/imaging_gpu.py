@@ -27,7 +27,21 @@ from .kernel import wavevectors
 from .kernel_gpu import Backend, GpuTransform, cuda_backend
 from .likelihood import _LRU, Imager, ImagingConfig
 
-__all__ = ["DeviceImager", "DevicePlaneWaveData"]
+__all__ = ["DeviceImager", "DevicePlaneWaveData", "make_imager"]
+
+
+def make_imager(config: ImagingConfig, max_kernels: int = 4, max_templates: int = 32) -> Imager:
+    """A `DeviceImager` on the CUDA device when the GPU kernel would be chosen for `config` — kernel
+    'auto' or 'gpu', a usable device, FP_DEVICE not 'cpu' (`GpuTransform.supports`) — and no shift
+    apodization; else the host `Imager` (whose 'auto' kernel then picks presum or finufft)."""
+    use = (
+        config.kernel in ("auto", "gpu")
+        and config.apodization_tiles is None
+        and GpuTransform.supports(np.zeros((1, 2)), np.zeros((1, 2)), config.grid.ndim)
+    )
+    if use:
+        return DeviceImager(config, max_kernels=max_kernels, max_templates=max_templates)
+    return Imager(config, max_kernels, max_templates)
 
 
 class DevicePlaneWaveData(PlaneWaveData):

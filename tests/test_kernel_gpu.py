@@ -14,7 +14,7 @@ import fpcore.kernel_gpu as kg
 from fpcore import Grid, GridTransform, Imager, ImagingConfig, PlaneWaveSequence, Probe, direct_sum, wavevectors
 from fpcore.born import born_points
 from fpcore.fingerprint import point_fingerprint
-from fpcore.imaging_gpu import DeviceImager, DevicePlaneWaveData
+from fpcore.imaging_gpu import DeviceImager, DevicePlaneWaveData, make_imager
 from fpcore.kernel_gpu import GpuTransform, cuda_problem, emulated_backend
 from fpcore.likelihood import KERNELS, make_kernel
 
@@ -102,6 +102,7 @@ def test_auto_never_picks_gpu_without_a_device(monkeypatch: pytest.MonkeyPatch) 
     cfg = ImagingConfig(grid, (2e6, 3e6), kernel="auto")
     acq_pw = _pw(grid)
     assert not isinstance(Imager(cfg).kernel(acq_pw), GpuTransform)
+    assert type(make_imager(cfg)) is Imager
     with pytest.raises(ValueError, match="kernel: 'gpu' needs a usable CUDA device"):
         make_kernel("gpu", acq_pw, grid, 1e-4)
     monkeypatch.setenv(kg.ENV_VAR, "gpu")  # asked for explicitly: an error, not a silent CPU run
@@ -167,3 +168,16 @@ def test_cuda_imager_matches_host_imager() -> None:
     assert np.abs(dev.gamma(pw_d, fp) - host.gamma(pw_h, fp)).max() <= 1e-3
     conf_h = host.confocal(pw_h)
     assert np.abs(dev.confocal(pw_d) - conf_h).max() <= 1e-3 * conf_h.max()
+
+
+def test_cli_device_gpu_without_device_is_one_line(monkeypatch: pytest.MonkeyPatch, capsys, tmp_path) -> None:
+    from services.cli import main
+
+    monkeypatch.setattr(kg, "_CHOICE", [])
+    monkeypatch.setattr(kg, "_PROBLEM", ["no CUDA device (test)"])
+    rc = main(
+        ["--device", "gpu", "figure", str(tmp_path / "none.mcap"), "--frame", "0", "--png", str(tmp_path / "a.png")]
+    )
+    err = capsys.readouterr().err.strip()
+    assert rc == 2
+    assert err == "fp figure: error: device: 'gpu' needs a usable CUDA device, but no CUDA device (test)"

@@ -15,7 +15,7 @@ import traceback
 from typing import NoReturn
 
 import fpcore
-from fpcore import budget
+from fpcore import budget, kernel_gpu
 from services.cli.characterise import add_characterise_parser
 from services.cli.convert import add_convert_parser
 from services.cli.demo import add_demo_parser
@@ -49,6 +49,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="SIZE",
         help="refuse requests estimated above this size, e.g. 8GiB or 25%% of the RAM (default: "
         f"${budget.ENV_VAR}, else {budget.DEFAULT_FRACTION * 100:.0f}%% of the RAM; fpcore.budget)",
+    )
+    ap.add_argument(
+        "--device",
+        choices=kernel_gpu.DEVICES,
+        help="where γ and confocal maps run: gpu (cufinufft + CuPy, the 'gpu' extra; an error without a usable "
+        "CUDA device), cpu, or auto (the GPU when one is usable) (default: $FP_DEVICE, else auto)",
     )
     sub = ap.add_subparsers(dest="command", required=True)
     add_demo_parser(sub)
@@ -106,6 +112,8 @@ def main(argv: list[str] | None = None) -> int:
         budget.set_memory_budget(
             budget.parse_bytes(args.memory_budget, "--memory-budget") if args.memory_budget else None
         )
+        if args.device is not None:
+            kernel_gpu.set_device(args.device)  # also exported in FP_DEVICE for the nodes a command starts
         return int(args.func(args))
     except (ValueError, OSError) as exc:
         print(f"fp {args.command}: error: {_one_line(exc)}", file=sys.stderr)
