@@ -27,7 +27,8 @@ def add_merge_parser(sub: argparse._SubParsersAction) -> None:
         help="run the merger of a sharded processor (tracks, ordered output; with fp worker)",
         description="Merger: assigns the frames of fp/<rig>/rf to the γ workers alive on "
         "fp/<rig>/alive/worker/*, runs the tracker in frame order and publishes gamma, image, tracks, "
-        "detections, status and errors as fp process does. docs/scaling.md.",
+        "detections, status and errors as fp process does; answers fp/<rig>/dictionary/** from the workers. "
+        "docs/scaling.md.",
     )
     p.add_argument("--rig", default="demo", help="rig name in the key expressions fp/<rig>/… (default demo)")
     p.add_argument("--name", default="merger", help="node name (default merger)")
@@ -44,6 +45,17 @@ def add_merge_parser(sub: argparse._SubParsersAction) -> None:
         type=number_in(0, 3600, lo_open=False),
         default=60.0,
         help="seconds to wait for them (default 60)",
+    )
+    p.add_argument(
+        "--shard",
+        choices=("frame", "fingerprint", "both"),
+        default="frame",
+        help="a worker's share: frame = whole frames; fingerprint = every frame split over all workers, each "
+        "computing its share of the dictionary (one also the confocal image); both = workers in groups of "
+        "--group-size, each frame split over one group (default frame; docs/scaling.md)",
+    )
+    p.add_argument(
+        "--group-size", type=int_at_least(1), default=2, help="workers per group with --shard both (default 2)"
     )
     p.add_argument("--no-track", action="store_true", help="do not run the tracker (empty Tracks)")
     p.add_argument(
@@ -92,12 +104,14 @@ def run_merge(args: argparse.Namespace) -> int:
         frame_timeout_s=args.frame_timeout,
         frame_deadline_s=args.frame_deadline,
         fifo_depth=args.fifo_depth,
+        shard=args.shard,
+        group_size=args.group_size,
     )
     stop = stop_on_signals()
     with open_session(bus) as session:
         with Merger(session, cfg) as node:
             log.info("merger on %s (%s queue), workers %s", node.keys.rf, cfg.queue, node.workers)
-            print(json.dumps({"ready": True, "rig": cfg.rig, "workers": node.workers}), flush=True)
+            print(json.dumps({"ready": True, "rig": cfg.rig, "shard": cfg.shard, "workers": node.workers}), flush=True)
             wait_until(stop, args.duration)
         print(json.dumps({"stopped": True, **node.stats()}), flush=True)
     return 0

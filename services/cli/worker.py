@@ -1,7 +1,8 @@
 """`fp worker`: run a γ worker (``services.nodes.worker``) for a sharded processor (docs/scaling.md).
 
 The fingerprint and imaging options are `fp process`'s (the same dictionary on every worker). The worker
-computes the frames a merger (`fp merge`) assigns to it; membership follows the workers' liveliness
+computes the frames, or the parts of frames, that a merger (`fp merge`, whose ``--shard`` chooses the
+shares) assigns to it, and serves its dictionary to the merger; membership follows the workers' liveliness
 tokens, so workers may be started and stopped at any time. Prints a JSON "ready" line once the node is
 up and a JSON summary when it stops (SIGINT/SIGTERM or ``--duration``).
 """
@@ -36,18 +37,13 @@ def add_worker_parser(sub: argparse._SubParsersAction) -> None:
         conflict_handler="resolve",
         help="run a γ worker of a sharded processor (with fp merge)",
         description="γ worker: computes the frames of fp/<rig>/rf that the merger (fp merge) assigns to it "
-        "and returns their γ-maps, image, null models and detections; announces itself on "
+        "(whole frames, or a share of their fingerprints: fp merge --shard) and returns their γ-maps, image, null "
+        "models and detections; announces itself on "
         "fp/<rig>/alive/worker/<name>. Fingerprint and imaging options as fp process. Waits up to 60 s for its "
         "router unless --connect-timeout-ms says otherwise. docs/scaling.md.",
     )
     node = p.add_argument_group("worker")
     node.add_argument("--name", help="worker name on the bus (default <host>-<pid>)")
-    node.add_argument(
-        "--shard",
-        choices=("frame",),
-        default="frame",
-        help="what a worker's share is: whole frames (the only share so far; docs/scaling.md)",
-    )
     p.set_defaults(func=run_worker, name=None, _bus_listen="tcp/127.0.0.1:0", _bus_connect="tcp/127.0.0.1:7447")
 
 

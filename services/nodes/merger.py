@@ -24,6 +24,15 @@ workers come and go. The merger keeps each frame (zenoh's buffer, no copy) until
   ``frame_deadline_s``: a frame still without a result that long after it was first forwarded is given up —
   one ErrorReport (field ``deadline``) in its place, and a late result is counted as a duplicate.
 
+Modes (``shard``). ``frame``: each frame goes whole to one worker, as above. ``fingerprint``: each frame
+goes to every live worker, each computing its share of the dictionary (``services.nodes.shares``: the
+fingerprints dealt in turn, plus ``@image`` — the confocal image and the truth report — to one of them);
+the merger joins the parts as the single node orders them. ``both``: the live workers form groups of
+``group_size`` (by name); each frame goes to one group (the least loaded), split over its members. A
+dead worker's units that were not returned go to the frame's other live workers at once (every worker
+holds the whole dictionary, so nothing is built on the way). The merger learns the dictionary's names from
+the workers and answers ``fp/<rig>/dictionary/**`` for the deployment (``shares.DictionaryFront``).
+
 Queue modes as the processor's: ``fifo`` (replay) keeps every frame until it is merged; ``newest`` (live)
 keeps only the newest frame waiting for a free worker and counts the others as ``dropped``. Either way
 the merger holds at most ``fifo_depth`` frames beyond its workers' ``depth`` each (waiting for a worker, or
@@ -51,13 +60,15 @@ from services.convert import track
 from services.messages import ErrorReport, GammaMap, Tracks
 from services.nodes.base import Node, frame_rate, latency_summary, status_message
 from services.nodes.frame_errors import failure_report
-from services.nodes.worker import ShardResult, decode_shard
+from services.nodes.shares import DictionaryFront, join_parts, split_units, worker_groups
+from services.nodes.worker import IMAGE_UNIT, WHOLE, ShardResult, decode_shard, encode_part
 from services.pipeline import make_tracker
 from services.wire import WireError, decode, decode_header, encode, error_report, extract_header
 
 __all__ = ["Merger", "MergerConfig"]
 
 log = logging.getLogger("fp.merger")
+SHARDS = ("frame", "fingerprint", "both")
 
 
 @dataclass
@@ -76,6 +87,8 @@ class MergerConfig:
     frame_timeout_s: float | None = None  # re-send a frame a live worker has not returned after this long
     frame_deadline_s: float | None = None  # give a frame up (ErrorReport) this long after its first forward
     fifo_depth: int = 8  # frames held beyond the workers' `depth` each; a frame over that is refused
+    shard: str = "frame"  # frame | fingerprint | both (module doc)
+    group_size: int = 2  # workers per group with shard="both"
 
     def __post_init__(self) -> None:
         if self.queue not in ("newest", "fifo"):
@@ -88,22 +101,44 @@ class MergerConfig:
             raise ValueError(f"--frame-deadline: expected > 0 seconds, got {self.frame_deadline_s}")
         if self.fifo_depth < 1:
             raise ValueError(f"--fifo-depth: expected >= 1, got {self.fifo_depth}")
+        if self.shard not in SHARDS:
+            raise ValueError(f"--shard: expected one of {', '.join(SHARDS)}, got {self.shard!r}")
+        if self.group_size < 1:
+            raise ValueError(f"--group-size: expected >= 1, got {self.group_size}")
         if self.min_workers < 0:
             raise ValueError(f"--workers: expected >= 0, got {self.min_workers}")
 
 
 @dataclass
 class _Frame:
+    """A frame in hand: its units (``*`` or fingerprint names and ``@image``), who holds each, what came back."""
+
     t_pub: float
     payload: Any  # the RFFrame payload as zenoh delivered it (ZBytes), until the frame's result is in
     header: bytes
-    worker: str | None = None
-    sent: int = 0  # times it was forwarded to a worker
-    t_sent: float = 0.0  # time.monotonic() of the last forward
+    units: list[str] | None = None  # None: not split yet
+    owner: dict[str, str | None] = field(default_factory=dict)  # unit → worker computing it (None: to send)
+    got: dict[str, ShardResult] = field(default_factory=dict)  # unit → the part that covered it
+    targets: list[str] = field(default_factory=list)  # the workers it was split over
+    sent: int = 0  # parts forwarded
+    t_sent: dict[str, float] = field(default_factory=dict)  # unit → time.monotonic() of its last forward
     t_first: float = 0.0  # time.monotonic() of the first forward
     tried: set[str] = field(default_factory=set)  # workers it was forwarded to
     slow: set[str] = field(default_factory=set)  # workers that did not return it within the frame timeout
     result: ShardResult | None = None
+
+    def out(self) -> dict[str, str]:
+        """unit → worker, for the units forwarded and not returned."""
+        return {u: w for u, w in self.owner.items() if w is not None and u not in self.got}
+
+    def waiting(self) -> list[str]:
+        """The units to forward (new, or their worker left or was too slow)."""
+        return [u for u in self.units or [] if self.owner.get(u) is None and u not in self.got]
+
+    @property
+    def idle(self) -> bool:
+        """Nothing of it out or back: a frame waiting for a worker."""
+        return self.result is None and not self.got and not self.out()
 
 
 class Merger(Node):
@@ -121,6 +156,8 @@ class Merger(Node):
         self._threads: list[threading.Thread] = []
         self._tracker: Tracker | None = None
         self._tracker_key: Any = None
+        self._names: list[str] | None = None  # the dictionary the workers hold (fingerprint modes split it)
+        self._front = DictionaryFront(session, self.keys, lambda: self.workers, self._on_names, f"{self.name}-dict")
         self.frames_processed = 0
         self.dropped = 0
         self.rejected = 0
@@ -138,13 +175,17 @@ class Merger(Node):
         self.declare_publishers("gamma", "image", "detections", "tracks", "status", "errors")
         pre = self.keys.alive("worker") + "/"
         self._pre = pre
+        self._front.start()
         self._subs = [
             self.session.liveliness().declare_subscriber(f"{pre}*", self._on_token, history=True),
             self.session.declare_subscriber(self.keys.topic("shard_result"), self._on_result),
         ]
         deadline = time.monotonic() + self.cfg.wait_workers_s
+        split = self.cfg.shard != "frame"
         with self._cond:
-            while len(self._members) < self.cfg.min_workers and time.monotonic() < deadline:
+            while time.monotonic() < deadline and (
+                len(self._members) < self.cfg.min_workers or (split and self._members and self._names is None)
+            ):
                 self._cond.wait(0.1)
             if len(self._members) < self.cfg.min_workers:
                 log.warning(
@@ -164,6 +205,7 @@ class Merger(Node):
     def _shutdown(self) -> None:
         for s in self._subs:
             s.undeclare()
+        self._front.stop()
         self._stop.set()
         with self._cond:
             self._cond.notify_all()
@@ -187,6 +229,7 @@ class Merger(Node):
         with self._cond:
             pending = len(self._frames)
         return {
+            "shard": self.cfg.shard,
             "frames_processed": self.frames_processed,
             "failed": self.failed,
             "pending": pending,  # frames in hand, not merged yet (at stop: never merged)
@@ -201,20 +244,42 @@ class Merger(Node):
             "latency_ms": latency_summary(self._latency),
         }
 
-    # -- membership, frames and results (zenoh callbacks: bookkeeping only) -------------------------------
+    # -- membership, dictionary, frames and results (zenoh callbacks: bookkeeping only) ----------------------
     def _on_token(self, sample: zenoh.Sample) -> None:
         name = str(sample.key_expr)[len(self._pre) :]
         with self._cond:
             if sample.kind == zenoh.SampleKind.PUT:
                 self._members.add(name)
                 log.info("worker %s joined (%d)", name, len(self._members))
+                self._front.refresh(name)
             else:
                 self._members.discard(name)
-                moved = [fi for fi, f in self._frames.items() if f.worker == name and f.result is None]
-                for fi in moved:
-                    self._frames[fi].worker = None
+                moved = []
+                for fi, f in self._frames.items():
+                    units = [u for u, w in f.out().items() if w == name]
+                    for u in units:
+                        f.owner[u] = None
+                    if units and f.result is None:
+                        moved.append(fi)
                 self.reassigned += len(moved)
                 log.warning("worker %s left (%d left); frames %s move to the others", name, len(self._members), moved)
+            self._dispatch()
+            self._cond.notify_all()
+
+    def _on_names(self, worker: str, names: list[str], changed: bool) -> None:
+        """A worker's dictionary: when it joined (the first one sets the deployment's), or after a change
+        through the dictionary front (``changed``: the new dictionary)."""
+        with self._cond:
+            if self._names is not None and names != self._names and not changed:
+                log.warning(
+                    "worker %s holds %s, the others %s: every worker needs the same dictionary",
+                    worker,
+                    names,
+                    self._names,
+                )
+            if self._names is None or changed:
+                self._names = list(names)
+                log.info("dictionary %s", self._names)
             self._dispatch()
             self._cond.notify_all()
 
@@ -236,7 +301,7 @@ class Merger(Node):
             if fi in self._frames:  # a frame already in hand (a re-sent frame); a later run may reuse indices
                 return
             limit = self.cfg.fifo_depth + self.cfg.depth * len(self._members)
-            replaced = sum(f.worker is None and f.result is None for f in self._frames.values()) if newest else 0
+            replaced = sum(f.idle for f in self._frames.values()) if newest else 0
             held = len(self._frames) - replaced  # in live mode the new frame replaces the waiting one
             if held >= limit:
                 self.dropped += 1
@@ -244,7 +309,7 @@ class Merger(Node):
                 self._frames[fi] = _Frame(t_pub, sample.payload, raw)
                 self._dispatch()
                 if newest:  # keep only the newest frame that waits for a worker
-                    waiting = sorted(i for i, f in self._frames.items() if f.worker is None and f.result is None)
+                    waiting = sorted(i for i, f in self._frames.items() if f.idle)
                     for i in waiting[:-1]:
                         del self._frames[i]
                         self.dropped += 1
@@ -266,45 +331,96 @@ class Merger(Node):
             return
         with self._cond:
             f = self._frames.get(res.frame_index)
-            if f is None or f.result is not None:
+            new = [] if f is None else [u for u in res.units if u in f.owner and u not in f.got]
+            if f is None or not new:
                 self.duplicates += 1
                 return
-            f.result, f.payload = res, None
-            self._dispatch()
+            if f.result is not None:  # a part of a frame that failed in another worker: already answered
+                return
+            for u in new:
+                f.got[u] = res
+            if res.kind != "result":
+                f.result = res  # the frame's ErrorReport, as the single node gives one
+            elif f.units is not None and len(f.got) == len(f.units):
+                f.result = res if f.units == [WHOLE] else join_parts(res.frame_index, f.units, f.got)
+            if f.result is not None:
+                f.payload = None
+                self._dispatch()
             self._cond.notify_all()
 
     def _dispatch(self) -> None:
-        """Forward the waiting frames, oldest first, to the least loaded live workers (under the lock)."""
+        """Forward what waits, oldest frame first (under the lock): a frame's orphaned units to its other live
+        workers, new frames to the least loaded live worker (frame), every worker (fingerprint) or group (both)."""
         members = sorted(self._members)
         if not members:
             return
         load = dict.fromkeys(members, 0)
         for f in self._frames.values():
-            if f.worker in load and f.result is None:
-                load[f.worker] += 1
-        n = len(members)
+            for w in set(f.out().values()):
+                if w in load and f.result is None:
+                    load[w] += 1
+        if self.cfg.shard != "frame":  # orphaned units first: the frame's live workers take them now
+            for fi in sorted(self._frames):
+                f = self._frames[fi]
+                if f.result is None and f.sent and f.waiting():
+                    live = [w for w in members if w not in f.slow]
+                    cands = [w for w in live if w in f.targets] or live or members
+                    self._send(fi, f, split_units(f.waiting(), cands, fi))
         for fi in sorted(self._frames):
             f = self._frames[fi]
-            if f.worker is not None or f.result is not None:
+            if f.result is not None or (f.units is not None and not f.waiting()):
                 continue
-            if f.slow and not set(members) - f.slow:  # only slow workers are left: back to them
-                f.slow.clear()
-            free = [w for w in members if load[w] < self.cfg.depth]
-            if not free:
+            if self.cfg.shard == "frame":
+                if not self._dispatch_whole(fi, f, members, load):
+                    return
+            elif not self._dispatch_split(fi, f, members, load):
                 return
-            free = [w for w in free if w not in f.slow] or ([] if f.slow else free)
-            if not free:
-                continue
+
+    def _dispatch_whole(self, fi: int, f: _Frame, members: list[str], load: dict[str, int]) -> bool:
+        """``shard="frame"``: the whole frame to the least loaded free worker; False when none is free."""
+        if f.slow and not set(members) - f.slow:  # only slow workers are left: back to them
+            f.slow.clear()
+        free = [w for w in members if load[w] < self.cfg.depth]
+        if not free:
+            return False
+        free = [w for w in free if w not in f.slow] or ([] if f.slow else free)
+        if free:
+            n = len(members)
             w = min(free, key=lambda m: (load[m], (members.index(m) - fi) % n))
-            f.worker, load[w] = w, load[w] + 1
-            f.t_sent = time.monotonic()
-            f.t_first = f.t_first if f.sent else f.t_sent
+            load[w] += 1
+            f.units, f.targets = [WHOLE], [w]
+            self._send(fi, f, {w: [WHOLE]})
+        return True
+
+    def _dispatch_split(self, fi: int, f: _Frame, members: list[str], load: dict[str, int]) -> bool:
+        """A new frame split over every worker (fingerprint) or one group (both); False when it must wait."""
+        if self._names is None:
+            return False  # the dictionary is not known yet
+        groups = [members] if self.cfg.shard == "fingerprint" else worker_groups(members, self.cfg.group_size)
+        free = [i for i, g in enumerate(groups) if all(load[w] < self.cfg.depth for w in g)]
+        if not free:
+            return False
+        n = len(groups)
+        g = groups[min(free, key=lambda i: (sum(load[w] for w in groups[i]), (i - fi) % n))]
+        f.units, f.targets = [*self._names, IMAGE_UNIT], list(g)
+        shares = split_units(f.units, g, fi)
+        for w in shares:
+            load[w] += 1
+        self._send(fi, f, shares)
+        return True
+
+    def _send(self, fi: int, f: _Frame, shares: dict[str, list[str]]) -> None:
+        now = time.monotonic()
+        for w, units in shares.items():
+            for u in units:
+                f.owner[u], f.t_sent[u] = w, now
+            f.t_first = f.t_first if f.sent else now
             f.sent += 1
             f.tried.add(w)
             self.session.put(
                 self.keys.shard_assign_to(w),
                 f.payload,
-                attachment=f.header,
+                attachment=f.header if units == [WHOLE] else encode_part(units, f.header),
                 congestion_control=zenoh.CongestionControl.BLOCK,
             )
 
@@ -335,14 +451,22 @@ class Merger(Node):
         if limit is None:
             return
         now = time.monotonic()
-        late = [(i, f) for i, f in self._frames.items() if f.worker is not None and f.result is None]
-        late = [(i, f) for i, f in late if now - f.t_sent > limit and self._members - f.slow - {f.worker}]
-        for fi, f in late:  # only when another live worker can take it
-            log.warning("frame %s: no result from %s after %.1f s; sent to another worker", fi, f.worker, limit)
-            f.slow.add(f.worker or "")
-            f.worker = None
-            self.timed_out += 1
-        if late:
+        moved = False
+        for fi, f in self._frames.items():
+            if f.result is not None:
+                continue
+            late = {w for u, w in f.out().items() if now - f.t_sent[u] > limit}
+            for w in sorted(late):
+                if not self._members - f.slow - {w}:  # only when another live worker can take it
+                    continue
+                log.warning("frame %s: no result from %s after %.1f s; sent to another worker", fi, w, limit)
+                f.slow.add(w)
+                for u, o in f.out().items():
+                    if o == w:
+                        f.owner[u] = None
+                self.timed_out += 1
+                moved = True
+        if moved:
             self._dispatch()
 
     def _check_deadlines(self) -> None:
@@ -362,7 +486,7 @@ class Merger(Node):
                 )
                 rep = ErrorReport(frame_index=fi, key=self.keys.rf, field="deadline", problem=problem, node=self.name)
                 f.result = ShardResult(fi, 0.0, self.name, "failed", [("errors", encode(rep))])
-                f.payload, f.worker = None, None
+                f.payload, f.owner = None, {}
 
     def _emit(self, f: _Frame, res: ShardResult) -> None:
         """Publish one frame as the processor does: [truth report,] image, γ-maps, tracks, detections (or the
@@ -376,7 +500,8 @@ class Merger(Node):
             self.failed += 1
         else:
             self.frames_processed += 1
-            self.per_worker[res.worker] = self.per_worker.get(res.worker, 0) + 1
+            for w in res.worker.split(","):  # a frame's parts: every worker that computed one
+                self.per_worker[w] = self.per_worker.get(w, 0) + 1
             self._done_times.append(time.monotonic())
         for topic, payload in res.messages:
             if topic == "detections":
