@@ -139,3 +139,46 @@ def test_fingerprint_shards_worker_killed_nothing_lost_identical_and_dictionary_
     finally:
         for p in procs:
             p.stop()
+
+
+def test_both_frames_over_groups_fingerprints_over_their_workers() -> None:
+    """``--shard both`` in this process: four workers in two groups of two; each frame is split over the
+    two workers of one group, both groups get frames, and detections and tracks equal the single node's."""
+    from services.bus import BusConfig
+    from services.nodes.merger import Merger, MergerConfig
+    from services.nodes.worker import Worker, WorkerConfig
+
+    frames, cal = born_frames(6)
+    specs = [FingerprintSpec("marker", calibration=cal), FingerprintSpec("point", model="point")]
+    reference = _reference(frames, specs)
+    port, rig = free_port(), "both"
+    hub = BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{port}"], connect=[], shm="off")
+    mcfg = MergerConfig(rig=rig, queue="fifo", depth=1, min_workers=4, wait_workers_s=30, shard="both", group_size=2)
+    k, names = keys(rig), ["a", "b", "c", "d"]
+    with open_session(hub) as hs, open_session(_client(port)) as ws, open_session(_client(port)) as ps:
+        nodes = [Worker(ws, WorkerConfig(**CONFIG, rig=rig, name=n), specs) for n in names]
+        for w in nodes:
+            w.start()
+        try:
+            with Merger(hs, mcfg) as m:
+                emitted: list[str] = []
+                emit = m._emit
+
+                def record(f: Any, res: Any) -> None:
+                    emitted.append(res.worker)
+                    emit(f, res)
+
+                m._emit = record  # type: ignore[method-assign]
+                col = Collector(ps, rig)
+                summary = Publisher(ps, rig, AcquisitionSource(frames), pace="ack", window=4, wait_timeout=30).run()
+                dets, tracks = col.wait(k.detections, 6), col.wait(k.tracks, 6)
+                col.close()
+        finally:
+            for w in nodes:
+                w.close()
+    assert summary["acked"] == 6 and [d.frame_index for d in dets] == list(range(6))
+    assert set(emitted) == {"a,b", "c,d"}  # each frame on one group, split over both of its workers
+    for d, t in zip(dets, tracks, strict=True):
+        assert _same_detections(d, reference[d.frame_index]["detections"]), d.frame_index
+        assert _same_tracks(t, reference[t.frame_index]["tracks"]), t.frame_index
+    assert sum(w.parts_computed for w in nodes) == 12 and all(w.parts_computed for w in nodes)
