@@ -96,7 +96,8 @@ class ImagingConfig:
     """What the processor does to every frame: band [f_min, f_max] (Hz), number of frequencies kept,
     output directions (None: sampled from the probe, `output_sines`), grid, NUFFT accuracy.
 
-    kernel: 'auto' (structured pre-sum kernel when the sines allow it, else finufft) or a name of
+    kernel: 'auto' (cufinufft on a usable CUDA device, fpcore.kernel_gpu; else the structured pre-sum
+    kernel when the sines allow it, else finufft) or a name of
     `KERNELS`: 'gpu', 'nufft' or 'presum' (`make_kernel`).
     apodization_tiles: split the grid into this many tiles per axis and apply the shift apodization
     A(θ_out, r) A(θ_in, r) of paper eq. BF at each tile's centre (docs/design.md §5); None: no shift apodization
