@@ -4,6 +4,7 @@ zenoh router on loopback, on the same quick 3-D frames; detections and tracks co
 
     python bench/bench_scaling.py                       # 1, 2, 4 workers, 24 measured frames each
     python bench/bench_scaling.py --workers 1 2 --frames 12
+    python bench/bench_scaling.py --shard fingerprint --workers 1 2   # both spheres' fingerprints, split
 
 Frames: the quick 3-D sinking-sphere scenario (cached by bench/bench_streaming.py under out/bench/cache),
 its grid (x −9…−1 mm, y ±4 mm, z 18–30 mm) and 40 frequencies; a few distinct frames are cycled with new
@@ -12,6 +13,9 @@ indices and timestamps. The single node is `fp process --mode router`; a sharded
 on acknowledgements with 2 frames in flight per worker. Each worker's kernel threads: FP_THREADS =
 max(1, CPUs // workers). The first (``--warmup`` + 2) × workers frames (each worker's first frames and the
 frames queued behind them) are left out of the figures; CPU time per frame is counted over the others.
+``--shard`` is the merger's (docs/scaling.md). ``--fingerprints 2`` gives every run (the single node's too)
+both spheres' calibrations, a dictionary to split: the default with ``--shard fingerprint`` and ``both``
+(``--group-size``); ``frame`` defaults to one (sphere1).
 """
 
 from __future__ import annotations
@@ -90,14 +94,16 @@ class Proc:
         return json.loads(lines[-1]) if lines else {}
 
 
-def run(label: str, n_workers: int, frames: list, cal: Path, args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
+def run(
+    label: str, n_workers: int, frames: list, cals: list[Path], args: argparse.Namespace, tmp: Path
+) -> dict[str, Any]:
     """One configuration: its nodes, the frames through them, what came back."""
     rig, port = f"scale{n_workers}", free_port()
     hub = f"tcp/127.0.0.1:{port}"
     # every worker's first frames, and the window of frames queued behind them
     warmup = (args.warmup + 2) * max(1, n_workers)
     total = warmup + args.frames
-    fp_args = ["--rig", rig, "--calibration", str(cal), *GRID]
+    fp_args = ["--rig", rig, *[a for c in cals for a in ("--calibration", str(c))], *GRID]
     procs: list[Proc] = []
     head: Proc
     t0 = time.perf_counter()
@@ -108,10 +114,12 @@ def run(label: str, n_workers: int, frames: list, cal: Path, args: argparse.Name
         else:
             head = Proc(
                 ["merge", "--rig", rig, "--queue", "fifo", "--workers", str(n_workers), "--mode", "router"]
-                + ["--listen", hub, "--wait-workers", "300"],
+                + ["--listen", hub, "--wait-workers", "300", "--shard", args.shard]
+                + ["--group-size", str(args.group_size)],
                 tmp / f"m{n_workers}.log",
             )
-            threads = str(max(1, (os.cpu_count() or 1) // n_workers))
+            threads = str(max(1, (os.cpu_count() or 1) // n_workers))  # every worker computes every frame's
+            # spectrum and projection in the fingerprint modes: still one share of the cores each
             for i in range(n_workers):
                 cmd = ["worker", *fp_args, "--name", f"w{i}", "--mode", "client", "--connect", hub]
                 procs.append(Proc(cmd, tmp / f"w{n_workers}-{i}.log", {"FP_THREADS": threads}))
@@ -214,26 +222,44 @@ def main() -> int:
     ap.add_argument("--warmup", type=int, default=3, help="warm-up frames left out (default 3)")
     ap.add_argument("--distinct", type=int, default=2, help="distinct simulated frames, cycled (default 2)")
     ap.add_argument("--shm", default="auto", help="the publisher's zenoh shared memory (default auto)")
+    ap.add_argument(
+        "--shard",
+        choices=("frame", "fingerprint", "both"),
+        default="frame",
+        help="fp merge --shard (default frame; fingerprint/both use both spheres' fingerprints in every run)",
+    )
+    ap.add_argument(
+        "--fingerprints",
+        type=int,
+        choices=(1, 2),
+        help="dictionary entries: 1 (sphere1) or 2 (sphere1, sphere2); default 1 with --shard frame, else 2",
+    )
+    ap.add_argument("--group-size", type=int, default=2, help="fp merge --group-size for --shard both (default 2)")
     ap.add_argument("--json", help="write the table as JSON")
     args = ap.parse_args()
     if args.warmup < 1:
         ap.error("--warmup: expected >= 1")
     case = CASES["3d"]
-    frames, _ = cached_frames(case["scenario"], args.distinct, case["targets"])
-    cal = Path("out/bench/cache") / f"{case['scenario']}-cal-{case['targets'][0]}.uff"
+    n_fp = args.fingerprints or (1 if args.shard == "frame" else 2)
+    targets = ["sphere1", "sphere2"][:n_fp]
+    frames, _ = cached_frames(case["scenario"], args.distinct, targets)
+    cals = [Path("out/bench/cache") / f"{case['scenario']}-cal-{t}.uff" for t in targets]
     a = frames[0]
     cpus = os.cpu_count()
     print(
         f"quick 3-D {case['scenario']}: {a.probe.n_elements} elements × {a.sequence.n_waves} plane waves × "
         f"{a.n_samples} samples = {a.rf.nbytes / 1e6:.1f} MB/frame; {args.warmup} warm-up + {args.frames} frames "
-        f"per run; {cpus} CPU(s), load average {os.getloadavg()[0]:.1f} at start (shared machine)",
+        f"per run; fingerprints {targets}, --shard {args.shard}; {cpus} CPU(s), load average "
+        f"{os.getloadavg()[0]:.1f} at start (shared machine)",
         flush=True,
     )
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for n in [0, *args.workers]:
-            label = "single node (fp process)" if n == 0 else f"fp merge + {n} worker{'s' * (n > 1)}"
-            r = run(label, n, frames, cal, args, Path(tmp))
+            label = (
+                "single node (fp process)" if n == 0 else f"fp merge --shard {args.shard} + {n} worker{'s' * (n > 1)}"
+            )
+            r = run(label, n, frames, cals, args, Path(tmp))
             rows.append(r)
             merger = {k: r["head_stats"].get(k) for k in ("per_worker", "reassigned", "duplicates")} if n else {}
             print(

@@ -4,11 +4,12 @@
 # $FRAMES frames of $SCENARIO paced by acknowledgements. Every process is stopped by its pid at the end.
 #   deploy/compose/local.sh                          # 2 workers, 6 quick sinking-cylinder (2-D) frames
 #   WORKERS=4 SCENARIO=sinking-sphere FRAMES=16 deploy/compose/local.sh
+#   SHARD=fingerprint SCENARIO=sinking-sphere deploy/compose/local.sh   # fp merge --shard (frame by default)
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 FP="${FP:-.venv/bin/fp}"
 PORT="${PORT:-7457}"; WORKERS="${WORKERS:-2}"; SCENARIO="${SCENARIO:-sinking-cylinder}"; FRAMES="${FRAMES:-6}"
-RIG="${RIG:-sharded}"; OUT="${OUT:-out/compose}"
+RIG="${RIG:-sharded}"; OUT="${OUT:-out/compose}"; SHARD="${SHARD:-frame}"
 HUB="tcp/127.0.0.1:$PORT"; CLIENT=(--mode client --connect "$HUB")
 mkdir -p "$OUT"
 pids=()
@@ -18,7 +19,7 @@ wait_ready() { # $1: the node's stdout file; waits for its JSON "ready" line
   for _ in $(seq 600); do grep -q '"ready"' "$1" 2>/dev/null && return 0; sleep 0.2; done
   echo "no ready line in $1" >&2; return 1
 }
-"$FP" merge --rig "$RIG" --queue fifo --workers "$WORKERS" --mode router --listen "$HUB" >"$OUT/merger.out" 2>"$OUT/merger.log" &
+"$FP" merge --rig "$RIG" --queue fifo --shard "$SHARD" --workers "$WORKERS" --mode router --listen "$HUB" >"$OUT/merger.out" 2>"$OUT/merger.log" &
 pids+=($!)
 for i in $(seq 1 "$WORKERS"); do
   "$FP" worker --rig "$RIG" --scenario "$SCENARIO" --name "w$i" "${CLIENT[@]}" >"$OUT/w$i.out" 2>"$OUT/w$i.log" &
