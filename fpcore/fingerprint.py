@@ -55,6 +55,7 @@ __all__ = [
     "mirror_fingerprint",
     "check_geometry",
     "moving_fingerprint",
+    "motion_ramp",
 ]
 
 _TOKENS = itertools.count(1)  # Fingerprint.token
@@ -113,19 +114,25 @@ def _path(sines: np.ndarray, shifts: np.ndarray) -> np.ndarray:
     return sines[:, :1] * d[None, :, 0] + sines[:, 1:2] * d[None, :, 1] + c[:, None] * d[None, :, 2]
 
 
-def moving_fingerprint(fp: Fingerprint, velocity: np.ndarray, transmit_times: np.ndarray) -> Fingerprint:
-    """F_v: ``fp`` for a target moving at ``velocity`` (m/s, (v_x, v_y, v_z)) while the transmits fire
-    at ``transmit_times`` (s, one per transmit, relative to the time the position refers to) — the
-    per-transmit virtual shift δ_j = v τ_j of the module doc. state gains ``velocity_m_s``."""
+def motion_ramp(fp: Fingerprint, velocity: np.ndarray, transmit_times: np.ndarray) -> np.ndarray:
+    """F_v / F, (N_f, N_o, N_i) complex: the phase of the per-transmit virtual shift δ_j = v τ_j (module doc)
+    on the outgoing and incoming paths, for ``fp``'s geometry (:func:`moving_fingerprint`)."""
     v = np.asarray(velocity, dtype=float).reshape(3)
     tau = np.asarray(transmit_times, dtype=float).reshape(-1)
     if tau.size != fp.in_sines.shape[0]:
         raise ValueError(f"transmit_times: expected {fp.in_sines.shape[0]} values (one per transmit), got {tau.size}")
     k = 2 * np.pi * fp.freqs / fp.c0
     delta = tau[:, None] * v[None, :]  # (N_i, 3): where the target is when transmit j fires
-    ramp_out = np.exp(-1j * k[:, None, None] * _path(fp.out_sines, delta)[None])  # (N_f, N_o, N_i)
-    ramp_in = np.exp(-1j * k[:, None] * np.diagonal(_path(fp.in_sines, delta))[None, :])  # (N_f, N_i)
-    data = (fp.data * ramp_out * ramp_in[:, None, :]).astype(np.complex64)
+    path = _path(fp.out_sines, delta) + np.diagonal(_path(fp.in_sines, delta))[None, :]  # (N_o, N_i)
+    return np.exp(-1j * k[:, None, None] * path[None])
+
+
+def moving_fingerprint(fp: Fingerprint, velocity: np.ndarray, transmit_times: np.ndarray) -> Fingerprint:
+    """F_v: ``fp`` for a target moving at ``velocity`` (m/s, (v_x, v_y, v_z)) while the transmits fire
+    at ``transmit_times`` (s, one per transmit, relative to the time the position refers to) — the
+    per-transmit virtual shift δ_j = v τ_j of the module doc. state gains ``velocity_m_s``."""
+    v = np.asarray(velocity, dtype=float).reshape(3)
+    data = (fp.data * motion_ramp(fp, v, transmit_times)).astype(np.complex64)
     state = dict(fp.state, velocity_m_s=[float(x) for x in v])
     return Fingerprint(
         data,

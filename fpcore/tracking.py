@@ -27,7 +27,14 @@ while the target's γ stays high near its last position. The tracker therefore:
   persists, so fog peaks fall by up to √K against it. The mean's peak sits at the target's mean position
   over the window, i.e. it lags by v(K − 1)Δt/2: use K > 1 for slow targets only (moving it forward by
   the track's own velocity estimate feeds back into that estimate and was found unstable). The noise of
-  a measurement keeps the current frame's C_γ (the windows overlap, their errors are correlated).
+  a measurement keeps the current frame's C_γ (the windows overlap, their errors are correlated);
+* optionally takes velocity measurements (`motion`: fpcore.velocity.VelocityEstimate, the argmax of a
+  velocity dictionary around a detection or a track's prediction; docs/design.md §4.13): an estimate
+  inside a track's gate whose calibrated gated PFA (γ_v² against the map's local null level, times the
+  number of velocities searched) is below `p_keep` updates the track with its position (the peak of the
+  motion-aware γ, noise as above) and its velocity (noise σ_v = step/√12 per axis) in one Kalman update;
+  a new track starts at such an estimate's position and velocity (prior σ_v instead of
+  `initial_speed_sigma`) when it was centred on the birth's peak.
 
 Tracks follow one fingerprint each (the γ-map they live on); several tracks may share a fingerprint.
 """
@@ -36,12 +43,14 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from filterpy.kalman import KalmanFilter
 from scipy.optimize import linear_sum_assignment
 
 from .cfar import NullModel, null_model
+from .geometry import from_xyz
 from .grid import Grid
 from .metrics import (
     border_band,
@@ -198,23 +207,40 @@ class Tracker:
         )
 
     # --- per-frame update -------------------------------------------------------------------
+    def _dt(self, timestamp: float | None) -> float:
+        if timestamp is not None and self._last_time is not None and timestamp > self._last_time:
+            return timestamp - self._last_time
+        return self.config.default_dt
+
+    def predictions(self, timestamp: float | None = None) -> list[tuple[str, np.ndarray]]:
+        """(fingerprint, predicted position (x, y, z)) of every live track at ``timestamp``, without
+        advancing the tracker (where a velocity dictionary is searched before :meth:`update`)."""
+        dt = self._dt(timestamp)
+        out = []
+        for tr in self.tracks:
+            if tr.status != "lost":
+                x = tr.kf.x
+                out.append((tr.fingerprint, self._r3(x[: self.nd] + dt * x[self.nd :])))
+        return out
+
     def update(
         self,
         gamma_maps: dict[str, np.ndarray],
         timestamp: float | None = None,
         levels: dict[str, tuple[np.ndarray, np.ndarray | None]] | None = None,
         nulls: dict[str, NullModel] | None = None,
+        motion: dict[str, list[Any]] | None = None,
     ) -> list[TrackState]:
         """Advance all tracks with this frame's γ-maps (one per fingerprint name).
 
         levels: per name, (null level of γ², visible nodes) from fpcore.background.NullLevel — the
         physical background the significance is measured against (default: the CFAR alone); nulls: the
         maps' null models already computed by the caller (fpcore.cfar.null_model; used when the tracker
-        searches the current frame, i.e. integrate_frames = 1).
+        searches the current frame, i.e. integrate_frames = 1); motion: per name, velocity estimates
+        (fpcore.velocity.VelocityEstimate: ``position_m``, ``velocity_m_s``, ``sigma_m_s``, ``gamma``,
+        ``n_states``, ``origin_m``) used as measurements (module doc).
         """
-        dt = self.config.default_dt
-        if timestamp is not None and self._last_time is not None and timestamp > self._last_time:
-            dt = timestamp - self._last_time
+        dt = self._dt(timestamp)
         self._last_time = timestamp if timestamp is not None else (self._last_time or 0.0) + dt
         self.tracks = [t for t in self.tracks if t.status != "lost"]  # reported lost once, last frame
         for tr in self.tracks:
@@ -238,7 +264,7 @@ class Tracker:
             if nm is None:
                 mid = 0.5 * (self.grid.z[0] + self.grid.z[-1])
                 nm = null_model(searched, self.grid, self._resolution(mid), level=lv, visible=visible)
-            self._update_map(name, g, searched, nm)
+            self._update_map(name, g, searched, nm, list((motion or {}).get(name, [])))
         return self.states()
 
     def _gated_peak(
@@ -277,7 +303,52 @@ class Tracker:
         g = gamma[outside] if outside.any() else gamma.ravel()
         return float(g.mean())
 
-    def _update_map(self, name: str, current: np.ndarray, gamma: np.ndarray, nm: NullModel) -> None:
+    def _motion_in_gate(self, tr: _Track, nm: NullModel, motion: list[Any]) -> tuple[Any, float] | None:
+        """The most significant velocity estimate inside the track's gate, with its calibrated PFA: γ_v²
+        against the map's local null level γ_M² (statistic T, Rayleigh tail), as a gated maximum, times
+        the number of velocities searched (docs/design.md §4.13); None without one."""
+        kf = tr.kf
+        depth = kf.x[self.nd - 1]
+        res, _ = self._resolution(depth)
+        s_cov = kf.H @ kf.P @ kf.H.T + self._noise(4.0, depth)
+        radius = max(self.config.gate_sigma * np.sqrt(np.linalg.eigvalsh(s_cov).max()), self.config.min_gate or 2 * res)
+        radius_nodes = np.array([radius / d for d in self.grid.spacing])
+        best = None
+        for m in motion:
+            c = from_xyz(np.asarray(m.position_m, float), self.nd)
+            v = c - kf.x[: self.nd]
+            if float(v @ np.linalg.solve(s_cov, v)) > self.config.gate_sigma**2 and np.linalg.norm(v) > radius:
+                continue
+            node = self.grid.nearest_index(np.asarray(m.position_m, float))
+            t = float(m.gamma) ** 2 / max(float(nm.power[node]), 1e-30)
+            n = max(float(nm.train_cells[node]), 2.0)  # CA-CFAR law of a level from n cells (fpcore.cfar)
+            # capped at 300 (PFA e^-300): far above it the EC expansion underflows to 0 (and max_tail to 1)
+            s = min(n * np.log1p(t / n), 300.0)
+            p = min(1.0, nm.gate_pfa(s, radius_nodes) * max(int(m.n_states), 1))
+            if best is None or p < best[1]:
+                best = (m, p)
+        return best
+
+    def _motion_update(self, tr: _Track, m: Any, noise: np.ndarray) -> None:
+        """One Kalman update with the estimate's position (noise ``noise``) and velocity (σ_v per axis; an
+        axis with σ_v = 0 was not searched and is not measured)."""
+        nd = self.nd
+        sig = from_xyz(np.asarray(m.sigma_m_s, float), nd)
+        axes = [a for a in range(nd) if sig[a] > 0]
+        H = np.zeros((nd + len(axes), 2 * nd))
+        H[:nd, :nd] = np.eye(nd)
+        for k, a in enumerate(axes):
+            H[nd + k, nd + a] = 1.0
+        vel = from_xyz(np.asarray(m.velocity_m_s, float), nd)
+        z = np.concatenate([from_xyz(np.asarray(m.position_m, float), nd), vel[axes]])
+        R = np.zeros((len(z), len(z)))
+        R[:nd, :nd] = noise
+        R[nd:, nd:] = np.diag(sig[axes] ** 2)
+        tr.kf.update(z, R=R, H=H)
+
+    def _update_map(
+        self, name: str, current: np.ndarray, gamma: np.ndarray, nm: NullModel, motion: list[Any] | None = None
+    ) -> None:
         """Gate, assign and update the tracks of `name` on `gamma` (the current map or the window's mean)."""
         cfg = self.config
         tracks = [t for t in self.tracks if t.fingerprint == name]
@@ -300,18 +371,29 @@ class Tracker:
                         cost[i, j] = m2
             rows, cols = linear_sum_assignment(cost)
             assigned = {int(r): int(c) for r, c in zip(rows, cols, strict=True) if cost[r, c] < 1e9}
+        motion = list(motion or [])
         for i, tr in enumerate(tracks):
-            match = assigned.get(i)
-            if match is None:
-                self._miss(tr)
-                continue
-            c, val, p, _ = cands[match]
-            if p > cfg.p_keep:
-                self._miss(tr)
-                continue
-            c_gamma = self._contrast(current, gamma, c, val, cur_mean)
-            noise = self._noise(c_gamma, c[-1])
-            tr.kf.update(c, R=noise)
+            found = self._motion_in_gate(tr, nm, motion) if motion else None
+            if found is not None and found[1] <= cfg.p_keep:
+                m, p = found
+                motion = [x for x in motion if x is not m]
+                c = from_xyz(np.asarray(m.position_m, float), self.nd)
+                val = float(m.gamma)
+                c_gamma = val / cur_mean if cur_mean > 0 else np.inf
+                noise = self._noise(c_gamma, c[-1])
+                self._motion_update(tr, m, noise)
+            else:
+                match = assigned.get(i)
+                if match is None:
+                    self._miss(tr)
+                    continue
+                c, val, p, _ = cands[match]
+                if p > cfg.p_keep:
+                    self._miss(tr)
+                    continue
+                c_gamma = self._contrast(current, gamma, c, val, cur_mean)
+                noise = self._noise(c_gamma, c[-1])
+                tr.kf.update(c, R=noise)
             tr.c_gamma = float(c_gamma)
             tr.precision = np.sqrt(np.diag(noise))
             tr.hits += 1
@@ -321,7 +403,7 @@ class Tracker:
             tr.last_pfa = p
             tr.confidence = 1.0 - p
             tr.history.append(tr.kf.x[: self.nd].copy())
-        self._births(name, gamma, current, tracks, nm)
+        self._births(name, gamma, current, tracks, nm, motion)
 
     def _contrast(self, current: np.ndarray, searched: np.ndarray, c: np.ndarray, val: float, mean: float) -> float:
         """C_γ of the current frame's map at `c` against its mean `mean` (the searched map's refined
@@ -336,7 +418,15 @@ class Tracker:
         tr.confidence *= 0.5
         tr.history.append(tr.kf.x[: self.nd].copy())
 
-    def _births(self, name: str, gamma: np.ndarray, current: np.ndarray, tracks: list[_Track], nm: NullModel) -> None:
+    def _births(
+        self,
+        name: str,
+        gamma: np.ndarray,
+        current: np.ndarray,
+        tracks: list[_Track],
+        nm: NullModel,
+        motion: list[Any] | None = None,
+    ) -> None:
         cfg = self.config
         if len([t for t in tracks if t.status != "lost"]) >= cfg.max_tracks_per_map:
             return
@@ -366,7 +456,16 @@ class Tracker:
                 mean = self._background_mean(current, [self._coords(np.asarray(d.position_m)) for d in dets])
                 c_gamma = self._contrast(current, gamma, c, det.gamma_max, mean)
             noise = self._noise(c_gamma, c[-1])
+            near = [m for m in motion or [] if np.linalg.norm(from_xyz(np.asarray(m.origin_m), self.nd) - c) <= res]
+            m = near[0] if near else None
+            if m is not None:  # the velocity dictionary searched around this peak: start at its estimate
+                c = from_xyz(np.asarray(m.position_m, float), self.nd)
             kf = self._new_filter(c, noise)
+            if m is not None:
+                sig = from_xyz(np.asarray(m.sigma_m_s, float), self.nd)
+                measured = sig > 0
+                kf.x[self.nd :][measured] = from_xyz(np.asarray(m.velocity_m_s, float), self.nd)[measured]
+                kf.P[self.nd :, self.nd :] = np.diag(np.where(measured, sig, self.config.initial_speed_sigma) ** 2)
             tr = _Track(
                 self._next_id,
                 name,
