@@ -16,6 +16,7 @@ import numpy as np
 from fpcore import Fingerprint
 from fpcore.metrics import Detection as CoreDetection
 from fpcore.tracking import TrackState
+from fpcore.velocity import VelocityEstimate
 from services.messages import (
     ConfocalImage,
     Detection,
@@ -34,6 +35,7 @@ __all__ = [
     "detection",
     "finite",
     "frame_messages",
+    "motion_of",
     "numeric_state",
     "quantise_rf",
     "track",
@@ -54,7 +56,24 @@ def numeric_state(fp: Fingerprint) -> dict[str, float]:
     }
 
 
-def detection(d: CoreDetection, state: dict[str, float], truth_error_m: float | None) -> Detection:
+def _vec3(v: Any) -> tuple[float, float, float]:
+    a = np.asarray(v, float).reshape(3)
+    return float(a[0]), float(a[1]), float(a[2])
+
+
+def detection(
+    d: CoreDetection, state: dict[str, float], truth_error_m: float | None, velocity: VelocityEstimate | None = None
+) -> Detection:
+    """The wire Detection of a core detection (with its velocity estimate, when there is one)."""
+    extra: dict[str, Any] = {}
+    if velocity is not None:
+        extra = {
+            "velocity_m_s": _vec3(velocity.velocity_m_s),
+            "velocity_sigma_m_s": _vec3(velocity.sigma_m_s),
+            "velocity_position_m": _vec3(velocity.position_m),
+            "velocity_gamma": max(float(velocity.gamma), 0.0),
+            "velocity_states": max(int(velocity.n_states), 1),
+        }
     return Detection(
         fingerprint=d.fingerprint,
         state=state,
@@ -66,7 +85,30 @@ def detection(d: CoreDetection, state: dict[str, float], truth_error_m: float | 
         pfa=float(np.clip(d.pfa, 0.0, 1.0)),
         precision_m=(float(d.precision_m[0]), float(d.precision_m[1])),
         truth_error_m=truth_error_m,
+        **extra,
     )
+
+
+def motion_of(dets: Detections) -> dict[str, list[VelocityEstimate]]:
+    """The velocity estimates a Detections message carries (Detections 1.2), per fingerprint: the tracker's
+    velocity measurements (``fpcore.tracking.Tracker.update(motion=…)``) where only the messages travel (a
+    sharded merger)."""
+    out: dict[str, list[VelocityEstimate]] = {}
+    for d in dets.detections:
+        if d.velocity_m_s is None or d.velocity_position_m is None:
+            continue
+        est = VelocityEstimate(
+            d.fingerprint,
+            np.asarray(d.position_m, float),
+            np.asarray(d.velocity_position_m, float),
+            np.asarray(d.velocity_m_s, float),
+            np.asarray(d.velocity_sigma_m_s or (0.0, 0.0, 0.0), float),
+            float(d.velocity_gamma or 0.0),
+            int(d.velocity_states or 1),
+            0.0,
+        )
+        out.setdefault(d.fingerprint, []).append(est)
+    return out
 
 
 def track(tr: TrackState) -> Track:
@@ -90,7 +132,8 @@ def frame_messages(res: FrameResult, frame_index: int, timestamp: float) -> dict
     Detections}`` of one frame's result."""
     fi, ts = frame_index, timestamp
     states = {name: numeric_state(fp) for name, fp in res.fingerprints.items()}
-    dets = [detection(d, states[d.fingerprint], err) for d, err in res.detections]
+    vels = res.velocities or [None] * len(res.detections)
+    dets = [detection(d, states[d.fingerprint], err, v) for (d, err), v in zip(res.detections, vels, strict=True)]
     tracks = [track(tr) for tr in res.tracks]
     wgrid = WireGrid.from_grid(res.grid)
     r_energy = float(np.vdot(res.pw.data, res.pw.data).real)

@@ -181,11 +181,33 @@ class Detection(_Model):
     )
     precision_m: tuple[float, float] = Field(description="Cramér–Rao precision [lateral, axial], m.")
     truth_error_m: float | None = Field(default=None, ge=0, description="Distance to ground truth, m.")
+    velocity_m_s: Vec3 | None = Field(
+        default=None,
+        description="[v_x, v_y, v_z], m/s: the velocity dictionary's estimate around this detection (the argmax "
+        "of γ over position and velocity; docs/design.md §4.13). None: the fingerprint has no velocity "
+        "grid, or the frame no PRF (schema 1.2).",
+    )
+    velocity_sigma_m_s: Vec3 | None = Field(
+        default=None, description="σ of velocity_m_s per axis (step/√12; 0: axis not searched), m/s (schema 1.2)."
+    )
+    velocity_position_m: Vec3 | None = Field(
+        default=None,
+        description="[x, y, z], m: the peak of the motion-aware γ at velocity_m_s (the position at the middle "
+        "of the transmit sequence; schema 1.2).",
+    )
+    velocity_gamma: float | None = Field(
+        default=None, ge=0, description="γ of the motion-aware fingerprint at that peak (schema 1.2)."
+    )
+    velocity_states: int | None = Field(
+        default=None, ge=1, description="Number of velocities searched (the look-elsewhere factor; schema 1.2)."
+    )
 
     @model_validator(mode="after")
     def _check(self) -> Detection:
         if min(self.precision_m) < 0:
             raise ArrayFieldError("precision_m", f"expected non-negative values, got {self.precision_m}")
+        if self.velocity_sigma_m_s is not None and min(self.velocity_sigma_m_s) < 0:
+            raise ArrayFieldError("velocity_sigma_m_s", f"expected non-negative values, got {self.velocity_sigma_m_s}")
         return self
 
 
@@ -390,10 +412,12 @@ class ConfocalImage(Message):
 
 
 class Detections(Message):
-    """Targets detected in one frame (key ``fp/<rig>/detections``)."""
+    """Targets detected in one frame (key ``fp/<rig>/detections``). 1.1 added ``contrast_local``; 1.2 the
+    optional velocity estimate of each detection (``velocity_m_s``, ``velocity_sigma_m_s``,
+    ``velocity_position_m``, ``velocity_gamma``, ``velocity_states``)."""
 
     schema_name: Literal["Detections"] = "Detections"
-    schema_version: str = Field(default="1.1", pattern=VERSION_PATTERN, description="MAJOR.MINOR.")
+    schema_version: str = Field(default="1.2", pattern=VERSION_PATTERN, description="MAJOR.MINOR.")
     frame_index: int = Field(ge=0)
     timestamp: float = Field(description="Acquisition time of the input frame, s.")
     detections: list[Detection] = Field(default_factory=list)

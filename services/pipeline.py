@@ -31,6 +31,7 @@ from fpcore.locate import null_of, resolution_of
 from fpcore.metrics import DEFAULT_MAX_PFA, Detection
 from fpcore.tracking import Tracker, TrackerConfig, TrackState
 from fpcore.truth import Truth
+from fpcore.velocity import VelocityEstimate, VelocitySearch
 from services.models import build_fingerprint
 from services.registry import Entry, FingerprintSpec, check_setup_size, set_changes
 
@@ -108,6 +109,11 @@ class FrameResult:
     tracks: list[TrackState]
     stage_s: dict[str, float] = field(default_factory=dict)
     nulls: dict[str, NullModel] = field(default_factory=dict)  # each γ-map's null model (a merger's tracker)
+    # per detection (same order): its velocity estimate, None where its fingerprint has no velocity grid
+    velocities: list[VelocityEstimate | None] = field(default_factory=list)
+    motion: dict[str, list[VelocityEstimate]] = field(default_factory=dict)  # every estimate (tracker input)
+    notices: list[str] = field(default_factory=list)  # said once per pipeline (e.g. no PRF: no velocity)
+    velocity_s: float = 0.0  # time of the velocity dictionaries (included in stage 'detection')
 
 
 def geometry_key(acq: Acquisition) -> tuple:
@@ -305,6 +311,7 @@ class Pipeline:
         self._last_acq: Acquisition | None = None
         self._ref: Acquisition | None = None  # the acquisition of the last set-up (calibration or frame)
         self.setup_s = 0.0
+        self._noticed: set[str] = set()
 
     # -- set-up --------------------------------------------------------------------------------------
     def warm_up(self) -> None:
@@ -514,8 +521,13 @@ class Pipeline:
             for name, g in gammas.items():
                 for d in find_targets(g, grid, acq, band, name, cfg.n_peaks, cfg.interior, nulls[name], cfg.max_pfa):
                     dets.append((d, truth_error(np.asarray(d.position_m, float), truths, name)))
+            tv = time.perf_counter()
+            velocities, motion, notices = self._velocities(acq, pw, grid, dets)
+            tv = time.perf_counter() - tv
             tracks = (
-                self._tracker.update(gammas, acq.timestamp, nulls=nulls) if self._tracker is not None and gammas else []
+                self._tracker.update(gammas, acq.timestamp, nulls=nulls, motion=motion)
+                if self._tracker is not None and gammas
+                else []
             )
             t3 = time.perf_counter()
         return FrameResult(
@@ -530,4 +542,58 @@ class Pipeline:
             tracks,
             {"spectrum_projection": t1 - t0, "gamma_kernel": t2 - t1, "detection": t3 - t2},
             nulls,
+            velocities,
+            motion,
+            notices,
+            tv,
         )
+
+    def _notice(self, key: str, text: str, out: list[str]) -> None:
+        if key not in self._noticed:
+            self._noticed.add(key)
+            out.append(text)
+            log.warning("%s", text)
+
+    def _velocities(
+        self, acq: Acquisition, pw: PlaneWaveData, grid: Grid, dets: list[tuple[Detection, float | None]]
+    ) -> tuple[list[VelocityEstimate | None], dict[str, list[VelocityEstimate]], list[str]]:
+        """The velocity dictionaries (fpcore.velocity) of the fingerprints that have one, searched around each
+        of their detections and each of their tracks' predicted positions (a region already searched, within
+        half its half-width, is not searched again). Without a PRF the transmit times are unknown: said once
+        (a notice), and no velocity is estimated."""
+        notices: list[str] = []
+        per_det: list[VelocityEstimate | None] = [None] * len(dets)
+        motion: dict[str, list[VelocityEstimate]] = {}
+        wanted = {n: e for n, e in self._entries.items() if e.spec.velocity_grid is not None and e.fp is not None}
+        if not wanted:
+            return per_det, motion, notices
+        if acq.sequence.prf is None:
+            self._notice(
+                "prf",
+                "prf: the frames carry no pulse repetition frequency (RFFrame 1.1 'prf'), so the transmit times "
+                f"are unknown; velocity estimates of {sorted(wanted)} skipped",
+                notices,
+            )
+            return per_det, motion, notices
+        self._noticed.discard("prf")
+        tau = acq.sequence.transmit_times()
+        preds = self._tracker.predictions(acq.timestamp) if self._tracker is not None else []
+        for name, entry in wanted.items():
+            vg = entry.spec.velocity_grid
+            assert vg is not None and entry.fp is not None
+            search = entry.velocity
+            stale = not isinstance(search, VelocitySearch) or search.fp is not entry.fp
+            if stale or not np.array_equal(search.tau, tau):
+                search = entry.velocity = VelocitySearch(entry.fp, vg, tau, eps=max(self.cfg.eps, 1e-4))
+            found: list[VelocityEstimate] = []
+            origins = [(i, np.asarray(d.position_m, float)) for i, (d, _) in enumerate(dets) if d.fingerprint == name]
+            origins += [(None, p) for n, p in preds if n == name]
+            for i, origin in origins:
+                est = next((e for e in found if np.linalg.norm(e.origin_m - origin) <= vg.roi_half_width / 2), None)
+                if est is None:
+                    est = search.estimate(pw, origin, grid.spacing)
+                    found.append(est)
+                if i is not None:
+                    per_det[i] = est
+            motion[name] = found
+        return per_det, motion, notices

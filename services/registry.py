@@ -13,7 +13,8 @@ Protocol (server: :class:`DictionaryServer`, client: :func:`dictionary_request`)
 * ``get fp/<rig>/dictionary/<name>``: one entry;
 * ``get fp/<rig>/dictionary/add/<name>`` with payload either an RFFrame (calibration; options
   ``{"r0_m": [x, y, z], "diameter_m": d}`` as JSON in the attachment, default: the frame's truth) or
-  JSON ``{"model": "point" | "mirror:L=2mm,alpha=10", "r0_m": [...]}``;
+  JSON ``{"model": "point" | "mirror:L=2mm,alpha=10", "r0_m": [...]}``; either may add
+  ``"velocity_grid": "VMAX[:STEP]"`` (and ``"velocity_roi"``): a live velocity dictionary (fpcore.velocity);
 * ``get fp/<rig>/dictionary/remove/<name>``;
 * ``get fp/<rig>/dictionary/set`` with JSON ``{"band_hz": [lo, hi], "n_freq": n, "svd_threshold": t,
   "n_peaks": k}``: fingerprints are rebuilt.
@@ -40,8 +41,10 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
 from fpcore import budget
+from fpcore.velocity import VelocityGrid
 from services.messages import RFFrame
 from services.topics import Keys
+from services.units import parse_length
 from services.wire import MAGIC, WireError, decode
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -59,6 +62,7 @@ __all__ = [
     "FingerprintSpec",
     "check_setup_size",
     "dictionary_request",
+    "parse_velocity_grid",
     "set_changes",
     "spec_from_request",
 ]
@@ -67,6 +71,9 @@ log = logging.getLogger("fp.registry")
 
 #: Names an entry cannot take (they are operations or wildcards).
 RESERVED = frozenset({"list", "add", "remove", "set", "**", "*"})
+
+#: Velocity step when a velocity grid spec gives none, m/s.
+DEFAULT_VELOCITY_STEP = 0.1
 
 #: The parameters a ``set`` query may change.
 SET_PARAMS = ("band_hz", "n_freq", "svd_threshold", "n_peaks")
@@ -83,6 +90,8 @@ class FingerprintSpec:
     r0: tuple[float, float, float] | None = None
     diameter: float | None = None  # None: from the calibration's truth, else measured (first arrival)
     gate: bool = True  # the paper's time gate after the front face; False keeps the whole record
+    # a velocity dictionary searched around each detection and track (fpcore.velocity; None: off)
+    velocity_grid: VelocityGrid | None = None
 
     def __post_init__(self) -> None:
         if (self.calibration is None) == (self.model is None):
@@ -96,11 +105,19 @@ class Entry:
     spec: FingerprintSpec
     fp: Fingerprint | None = None
     error: str | None = None
+    velocity: Any = None  # fpcore.velocity.VelocitySearch for the current fingerprint and transmit times
 
     def describe(self) -> dict[str, Any]:
         fp = self.fp
         source = "calibration" if self.spec.calibration is not None else f"model:{self.spec.model}"
         d: dict[str, Any] = {"name": self.spec.name, "source": source, "built": fp is not None, "error": self.error}
+        vg = self.spec.velocity_grid
+        if vg is not None:
+            d["velocity_grid"] = {
+                "max_speed_m_s": list(vg.max_speed),
+                "step_m_s": vg.step,
+                "roi_half_width_m": vg.roi_half_width,
+            }
         if fp is not None:
             d.update(
                 provenance=fp.provenance,
@@ -144,6 +161,7 @@ def spec_from_request(name: str, payload: bytes, attachment: bytes) -> Fingerpri
             calibration=frame.to_acquisition(),
             r0=None if r0 is None else tuple(r0),
             diameter=opts.get("diameter_m"),
+            velocity_grid=_velocity_option(opts),
         )
     try:
         doc = json.loads(payload.decode() or "{}")
@@ -152,7 +170,42 @@ def spec_from_request(name: str, payload: bytes, attachment: bytes) -> Fingerpri
     if not isinstance(doc, dict) or not isinstance(doc.get("model"), str):
         raise ValueError('add: expected JSON {"model": "point" | "mirror:L=2mm,alpha=10", "r0_m": [x, y, z]}')
     r0 = doc.get("r0_m")
-    return FingerprintSpec(name, model=doc["model"], r0=None if r0 is None else tuple(float(v) for v in r0))
+    return FingerprintSpec(
+        name,
+        model=doc["model"],
+        r0=None if r0 is None else tuple(float(v) for v in r0),
+        velocity_grid=_velocity_option(doc),
+    )
+
+
+def _velocity_option(doc: dict[str, Any]) -> VelocityGrid | None:
+    """``"velocity_grid": "VMAX[:STEP]"`` (and ``"velocity_roi": "3mm"``) of an add request, None if absent."""
+    spec = doc.get("velocity_grid")
+    if spec is None:
+        return None
+    if not isinstance(spec, str):
+        raise ValueError(f'add: velocity_grid must be a string "VMAX[:STEP]" (e.g. "0.5,0.2:0.1"), got {spec!r}')
+    return parse_velocity_grid(spec, str(doc.get("velocity_roi", "3mm")))
+
+
+def parse_velocity_grid(text: str, roi: str = "3mm") -> VelocityGrid:
+    """VelocityGrid of ``--velocity-grid VMAX[:STEP]`` (VMAX: one speed, or VX,VZ[,VY]) and ``--velocity-roi``;
+    ValueError naming the option, what was expected and what was found."""
+    expect = "VMAX[:STEP] in m/s, VMAX one speed or VX,VZ[,VY] (e.g. 0.5,0.2:0.1)"
+    speeds, _, step_txt = str(text).strip().partition(":")
+    try:
+        v = [float(x) for x in speeds.split(",")]
+        step = float(step_txt) if step_txt.strip() else DEFAULT_VELOCITY_STEP
+    except ValueError:
+        raise ValueError(f"--velocity-grid: expected {expect}, got {text!r}") from None
+    if len(v) not in (1, 2, 3):
+        raise ValueError(f"--velocity-grid: expected {expect}, got {text!r}")
+    xyz = (v[0], v[0], v[0]) if len(v) == 1 else (v[0], v[2] if len(v) == 3 else 0.0, v[1])
+    half = parse_length(roi, "--velocity-roi")
+    try:
+        return VelocityGrid(xyz, step, half)
+    except ValueError as exc:
+        raise ValueError(f"--velocity-grid: {exc} (from {text!r}, --velocity-roi {roi!r})") from None
 
 
 def _number(name: str, v: Any) -> float:

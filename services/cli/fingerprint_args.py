@@ -12,12 +12,22 @@ from fpcore import Acquisition, Grid
 from fpcore.geometry import to_xyz
 from fpcore.locate import resolution_of
 from fpcore.metrics import DEFAULT_MAX_PFA
+from fpcore.velocity import VelocityGrid
 from services.cli.imaging import number_in
 from services.models import check_calibration, check_r0, parse_model, recorded_position
-from services.registry import FingerprintSpec
+from services.registry import DEFAULT_VELOCITY_STEP, FingerprintSpec, parse_velocity_grid
 from services.units import parse_length, parse_position
 
-__all__ = ["add_fingerprint_arguments", "calibration_name", "calibration_r0", "fingerprint_spec", "warn_r0"]
+__all__ = [
+    "add_fingerprint_arguments",
+    "add_velocity_arguments",
+    "calibration_name",
+    "calibration_r0",
+    "fingerprint_spec",
+    "parse_velocity_grid",
+    "velocity_grid_from_args",
+    "warn_r0",
+]
 
 
 def add_fingerprint_arguments(p: argparse.ArgumentParser) -> None:
@@ -112,3 +122,26 @@ def warn_r0(
     if cal is None or not args.r0 or spec.r0 is None:
         return None
     return check_r0(np.asarray(spec.r0), cal, resolution_of(grid, first, band), force=args.force)
+
+
+def add_velocity_arguments(p: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """--velocity-grid, --velocity-roi: a live velocity dictionary per fingerprint (off by default)."""
+    p.add_argument(
+        "--velocity-grid",
+        metavar="VMAX[:STEP]",
+        help="estimate each target's velocity with a dictionary of motion-aware fingerprints (needs the frames' "
+        "PRF): velocities from -VMAX to +VMAX per axis in steps of STEP m/s (default "
+        f"{DEFAULT_VELOCITY_STEP:g}); VMAX is one speed for every axis or VX,VZ[,VY] (0: axis not searched), "
+        "e.g. 0.5,0.2:0.1. The tracker uses the estimates as velocity measurements. Off by default",
+    )
+    p.add_argument(
+        "--velocity-roi",
+        default="3mm",
+        help="half-width of the region searched around each detection and track (default 3mm)",
+    )
+
+
+def velocity_grid_from_args(args: argparse.Namespace) -> VelocityGrid | None:
+    """The options' VelocityGrid, None when --velocity-grid is not given."""
+    text = getattr(args, "velocity_grid", None)
+    return None if text is None else parse_velocity_grid(text, getattr(args, "velocity_roi", "3mm"))

@@ -9,12 +9,14 @@ when it stops (SIGINT/SIGTERM or ``--duration``).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 
 from fpcore.geometry import to_xyz
 from fpcore.metrics import DEFAULT_MAX_PFA
 from services.bus import add_bus_arguments, bus_from_args, open_session, stop_on_signals, tune_malloc, wait_until
+from services.cli.fingerprint_args import add_velocity_arguments
 from services.cli.imaging import add_imaging_arguments, grid_ranges, int_at_least, number_in
 from services.cli.scenario_args import add_scenario_arguments, scenario_kwargs
 from services.models import parse_model
@@ -58,6 +60,7 @@ def add_process_parser(sub: argparse._SubParsersAction) -> None:
         help="numerical fingerprint 'point' or 'mirror:L=2mm,alpha=10', repeatable",
     )
     src.add_argument("--scenario", help="calibrations of a simulator scenario's targets (e.g. sinking-sphere)")
+    add_velocity_arguments(src)
     src.add_argument("--full", action="store_true", help="full-size scenario (default: quick)")
     add_scenario_arguments(p)
     img = p.add_argument_group("imaging")
@@ -121,7 +124,7 @@ def specs_from_args(args: argparse.Namespace) -> list[FingerprintSpec]:
     from pathlib import Path
 
     from fpcore.io import read_uff
-    from services.cli.fingerprint_args import calibration_name
+    from services.cli.fingerprint_args import calibration_name, velocity_grid_from_args
 
     specs = []
     r0 = _xyz(args.r0, "--r0") if args.r0 else None
@@ -143,7 +146,8 @@ def specs_from_args(args: argparse.Namespace) -> list[FingerprintSpec]:
 
         kwargs = scenario_kwargs(args, args.scenario)
         specs.extend(SimulatorSource(args.scenario, quick=not args.full, **kwargs).fingerprint_specs())
-    return specs
+    vgrid = velocity_grid_from_args(args)
+    return [dataclasses.replace(sp, velocity_grid=vgrid) for sp in specs] if vgrid is not None else specs
 
 
 def config_from_args(args: argparse.Namespace) -> ProcessorConfig:

@@ -12,13 +12,20 @@ the PNG draws tracks against the truth over the mean confocal image.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from services.cli.fingerprint_args import add_fingerprint_arguments, fingerprint_spec, warn_r0
+from services.cli.fingerprint_args import (
+    add_fingerprint_arguments,
+    add_velocity_arguments,
+    fingerprint_spec,
+    velocity_grid_from_args,
+    warn_r0,
+)
 from services.cli.imaging import add_imaging_arguments, grid_ranges
 from services.cli.output import make_console, progress
 from services.pipeline import Pipeline, PipelineConfig, truth_error, truth_positions
@@ -36,6 +43,7 @@ def add_track_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("data", help="UFF file with the plane-wave frames (in time order)")
     add_fingerprint_arguments(p)
+    add_velocity_arguments(p)
     add_imaging_arguments(p, peaks_help="targets (tracks) per fingerprint")
     p.add_argument("--json", help="write detections and tracks per frame as JSON (SI units)")
     p.add_argument("--png", help="write a PNG of the tracks against the truth over the confocal image")
@@ -54,6 +62,18 @@ def _track_row(t: Any, truths: list[tuple[str | None, np.ndarray]]) -> dict[str,
         "confidence": float(t.confidence),
         "measured": bool(t.measured),
         "truth_error_m": err,
+    }
+
+
+def _velocity_row(v: Any) -> dict[str, Any]:
+    """A detection's velocity estimate (fpcore.velocity.VelocityEstimate) as JSON; {} without one."""
+    if v is None:
+        return {}
+    return {
+        "velocity_m_s": [float(x) for x in v.velocity_m_s],
+        "velocity_sigma_m_s": [float(x) for x in v.sigma_m_s],
+        "velocity_position_m": [float(x) for x in v.position_m],
+        "velocity_gamma": float(v.gamma),
     }
 
 
@@ -80,6 +100,7 @@ def run_track(args: argparse.Namespace) -> int:
         spacing=r["spacing"],
     )
     spec, cal = fingerprint_spec(args, first)
+    spec = dataclasses.replace(spec, velocity_grid=velocity_grid_from_args(args))
     pipe = Pipeline(cfg, [spec])
     pipe.setup(first)
     grid = pipe.grid
@@ -103,6 +124,8 @@ def run_track(args: argparse.Namespace) -> int:
         task = bar.add_task("tracking", total=len(frames))
         for acq in frames:
             res = pipe.process(acq)
+            for note in res.notices:
+                console.print(f"[yellow]warning:[/yellow] {note}")
             truths = truth_positions(acq.ground_truth)
             dets = [
                 {
@@ -115,8 +138,9 @@ def run_track(args: argparse.Namespace) -> int:
                     "pfa": d.pfa,
                     "precision_m": d.precision_m,
                     "truth_error_m": err,
+                    **_velocity_row(v),
                 }
-                for d, err in res.detections
+                for (d, err), v in zip(res.detections, res.velocities, strict=True)
             ]
             tracks = [_track_row(t, truths) for t in res.tracks]
             rows.append(

@@ -56,8 +56,8 @@ import zenoh
 
 from fpcore.tracking import Tracker, TrackState
 from services.bus import sample_publish_time
-from services.convert import track
-from services.messages import ErrorReport, GammaMap, Tracks
+from services.convert import motion_of, track
+from services.messages import Detections, ErrorReport, GammaMap, Tracks
 from services.nodes.base import Node, frame_rate, latency_summary, status_message
 from services.nodes.frame_errors import failure_report
 from services.nodes.shares import DictionaryFront, join_parts, split_units, worker_groups
@@ -526,7 +526,13 @@ class Merger(Node):
         key = (grid.x.tobytes(), ykey, grid.z.tobytes(), sorted(res.tracker.items()))
         if self._tracker is None or key != self._tracker_key:
             self._tracker, self._tracker_key = make_tracker(grid, res.tracker), key
-        return self._tracker.update(maps, res.timestamp, nulls=res.nulls)
+        motion = {}  # the detections' velocity estimates (Detections 1.2): velocity measurements
+        for t, p in res.messages:
+            if t == "detections":
+                d = decode(p, expect=Detections)
+                assert isinstance(d, Detections)
+                motion = motion_of(d)
+        return self._tracker.update(maps, res.timestamp, nulls=res.nulls, motion=motion)
 
     # -- status -------------------------------------------------------------------------------------------------
     def _publish_status(self) -> None:

@@ -257,6 +257,11 @@ class Processor(Node):
     def _process(self, job: _Job) -> None:
         msg = job.msg
         res = self.pipeline.process(msg.to_acquisition())
+        for note in res.notices:  # said once (e.g. no PRF: no velocity estimates), the frame goes on
+            field, _, problem = note.partition(": ")
+            self.report(
+                ErrorReport(frame_index=msg.frame_index, key=job.key, field=field, problem=problem, node=self.name)
+            )
         t3 = time.perf_counter()
         fi, ts = msg.frame_index, msg.timestamp
         out = frame_messages(res, fi, ts)
