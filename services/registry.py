@@ -185,27 +185,32 @@ def _velocity_option(doc: dict[str, Any]) -> VelocityGrid | None:
         return None
     if not isinstance(spec, str):
         raise ValueError(f'add: velocity_grid must be a string "VMAX[:STEP]" (e.g. "0.5,0.2:0.1"), got {spec!r}')
-    return parse_velocity_grid(spec, str(doc.get("velocity_roi", "3mm")))
+    names = ("add: velocity_grid", "add: velocity_roi")
+    return parse_velocity_grid(spec, str(doc.get("velocity_roi", "3mm")), names)
 
 
-def parse_velocity_grid(text: str, roi: str = "3mm") -> VelocityGrid:
+def parse_velocity_grid(
+    text: str, roi: str = "3mm", names: tuple[str, str] = ("--velocity-grid", "--velocity-roi")
+) -> VelocityGrid:
     """VelocityGrid of ``--velocity-grid VMAX[:STEP]`` (VMAX: one speed, or VX,VZ[,VY]) and ``--velocity-roi``;
-    ValueError naming the option, what was expected and what was found."""
+    ValueError naming the option (``names``: how the caller calls the two), what was expected and what was
+    found."""
+    opt, roi_opt = names
     expect = "VMAX[:STEP] in m/s, VMAX one speed or VX,VZ[,VY] (e.g. 0.5,0.2:0.1)"
     speeds, _, step_txt = str(text).strip().partition(":")
     try:
         v = [float(x) for x in speeds.split(",")]
         step = float(step_txt) if step_txt.strip() else DEFAULT_VELOCITY_STEP
     except ValueError:
-        raise ValueError(f"--velocity-grid: expected {expect}, got {text!r}") from None
+        raise ValueError(f"{opt}: expected {expect}, got {text!r}") from None
     if len(v) not in (1, 2, 3):
-        raise ValueError(f"--velocity-grid: expected {expect}, got {text!r}")
+        raise ValueError(f"{opt}: expected {expect}, got {text!r}")
     xyz = (v[0], v[0], v[0]) if len(v) == 1 else (v[0], v[2] if len(v) == 3 else 0.0, v[1])
-    half = parse_length(roi, "--velocity-roi")
+    half = parse_length(roi, roi_opt)
     try:
         return VelocityGrid(xyz, step, half)
     except ValueError as exc:
-        raise ValueError(f"--velocity-grid: {exc} (from {text!r}, --velocity-roi {roi!r})") from None
+        raise ValueError(f"{opt}: {exc} (from {text!r}, {roi_opt} {roi!r})") from None
 
 
 def _number(name: str, v: Any) -> float:

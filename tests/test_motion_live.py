@@ -135,3 +135,21 @@ def test_thinned_samples_give_the_same_estimate_as_all_samples() -> None:
     assert np.linalg.norm(est[True].position_m - est[False].position_m) < 0.05e-3
     assert est[True].gamma == pytest.approx(est[False].gamma, rel=0.02)
     assert np.linalg.norm(est[True].position_m - tg.position) < 0.2e-3
+
+
+def test_dictionary_add_request_takes_a_velocity_grid() -> None:
+    """The dictionary queryable's add (services.registry.spec_from_request): "velocity_grid" turns the entry's
+    velocity dictionary on; a bad one is refused with one line naming the option."""
+    import json
+
+    from services.registry import Entry, spec_from_request
+
+    body = {"model": "point", "r0_m": [0, 0, 0.02], "velocity_grid": "0.4:0.2", "velocity_roi": "2mm"}
+    spec = spec_from_request("p", json.dumps(body).encode(), b"")
+    assert spec.velocity_grid == VelocityGrid((0.4, 0.4, 0.4), 0.2, 2e-3)
+    assert Entry(spec).describe()["velocity_grid"]["step_m_s"] == pytest.approx(0.2)
+    assert spec_from_request("p", b'{"model": "point"}', b"").velocity_grid is None
+    with pytest.raises(ValueError, match="velocity_grid must be a string"):
+        spec_from_request("p", b'{"model": "point", "velocity_grid": 0.5}', b"")
+    with pytest.raises(ValueError, match="add: velocity_grid: expected VMAX"):
+        spec_from_request("p", b'{"model": "point", "velocity_grid": "fast"}', b"")
