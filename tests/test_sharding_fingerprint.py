@@ -182,3 +182,35 @@ def test_both_frames_over_groups_fingerprints_over_their_workers() -> None:
         assert _same_detections(d, reference[d.frame_index]["detections"]), d.frame_index
         assert _same_tracks(t, reference[t.frame_index]["tracks"]), t.frame_index
     assert sum(w.parts_computed for w in nodes) == 12 and all(w.parts_computed for w in nodes)
+
+
+def test_a_worker_without_a_fingerprint_fails_the_frame_and_refused_changes_name_the_workers() -> None:
+    """Worker ``b`` lacks the ``point`` entry the first worker gave the merger: the frame whose ``point``
+    unit it is dealt fails once, with an ErrorReport naming the fingerprint, and the next frame merges. A
+    dictionary add every worker refuses is answered ``ok: false`` with each worker's reason."""
+    from services.bus import BusConfig
+    from services.nodes.merger import Merger, MergerConfig
+    from services.nodes.worker import Worker, WorkerConfig
+
+    frames, cal = born_frames(2)
+    marker = FingerprintSpec("marker", calibration=cal)
+    port, rig = free_port(), "mismatch"
+    hub = BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{port}"], connect=[], shm="off")
+    mcfg = MergerConfig(rig=rig, queue="fifo", depth=1, min_workers=1, wait_workers_s=30, shard="fingerprint")
+    k = keys(rig)
+    with open_session(hub) as hs, open_session(_client(port)) as ws, open_session(_client(port)) as ps:
+        with Worker(ws, WorkerConfig(**CONFIG, rig=rig, name="a"), [marker, FingerprintSpec("point", model="point")]):
+            with Merger(hs, mcfg) as m:
+                with Worker(ws, WorkerConfig(**CONFIG, rig=rig, name="b"), [marker]):
+                    assert wait_for_token(ps, k.alive("worker") + "/b", 10)
+                    col = Collector(ps, rig)
+                    summary = Publisher(ps, rig, AcquisitionSource(frames), pace="ack", window=1, wait_timeout=20).run()
+                    errs, dets = col.wait(k.errors, 1), col.wait(k.detections, 1)
+                    refused = dictionary_request(ps, rig, "add", "bad", {"model": "mirror"}, timeout=20)
+                    col.close()
+                    names = m._names
+    assert summary["acked"] == 2 and names == ["marker", "point"]
+    assert [(e.frame_index, e.node) for e in errs] == [(0, "b")] and "'point'" in errs[0].problem
+    assert [d.frame_index for d in dets] == [1] and m.failed == 1 and m.frames_processed == 1
+    assert not refused["ok"] and refused["workers"] == {"a": False, "b": False}
+    assert "a: " in refused["error"] and "b: " in refused["error"] and "mirror" in refused["error"]
