@@ -4,6 +4,7 @@ with the share of processor time in each stage (docs/design.md §7, §8: speed i
 
     python bench/bench_streaming.py                 # 3D sinking-sphere (quick) and 2D muscle-fibres (quick)
     python bench/bench_streaming.py --only 2d --frames 40 --no-record
+    python bench/bench_streaming.py --only 3d --frames 40 --compression lz4 --no-display --adc-bits 16
 
 Frames come from the simulator (``fpcore.simulate``), which is exact but slow (seconds per 3D frame):
 a few distinct frames are generated once, cached as UFF under ``out/bench/cache`` and cycled with new
@@ -13,7 +14,10 @@ the first ``--warmup`` frames (shared-memory pool page faults, caches) are left 
 Stages: decode (wire → arrays, in the subscriber callback), spectrum + projection (rFFT of the band
 and P_θu), γ kernel (one NUFFT per fingerprint + the confocal image), detection (peaks, contrasts,
 PFA, precision, tracker), encode/publish (wire encoding and zenoh puts of image, γ-maps, tracks,
-detections).
+detections). Recorder: zstd (level 1), byte shuffle and display channels by default (``--compression``,
+``--no-shuffle``, ``--no-display``); ``--map-encoding`` is the processor's (uint16 maps by default);
+``--adc-bits`` digitises the RF as `fp demo` does (int16 with its scale; default: float32 RF). The recording's
+size per frame is printed (``--keep`` keeps it).
 """
 
 from __future__ import annotations
@@ -80,18 +84,25 @@ def run_case(name: str, args: argparse.Namespace) -> dict[str, Any]:
     total = args.warmup + args.frames
     repeat = -(-total // len(frames))
     specs = [FingerprintSpec(t, calibration=c) for t, c in cals.items()]
-    cfg = ProcessorConfig(rig=f"bench{name}", queue="fifo", n_freq=args.n_freq, **case["grid"])
+    cfg = ProcessorConfig(
+        rig=f"bench{name}", queue="fifo", n_freq=args.n_freq, map_encoding=args.map_encoding, **case["grid"]
+    )
     print(
         f"[{name}] {case['scenario']} (quick): {a.probe.n_elements} elements × {a.sequence.n_waves} plane waves "
         f"× {a.n_samples} samples = {a.rf.nbytes / 1e6:.1f} MB/frame; fingerprints {case['targets']}; "
         f"{args.warmup} warm-up + {args.frames} frames",
         flush=True,
     )
+    source: Any = AcquisitionSource(frames, repeat=repeat, limit=total)
+    if args.adc_bits:  # int16 RF with its scale, as `fp demo` publishes it
+        from services.convert import QuantisedSource
+
+        source = QuantisedSource(source, args.adc_bits)
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) if not args.keep else Path("out/bench") / name
         t = time.perf_counter()
         s = run_pipeline(
-            AcquisitionSource(frames, repeat=repeat, limit=total),
+            source,
             rig=cfg.rig,
             out_dir=out,
             n_frames=total,
@@ -101,8 +112,10 @@ def run_case(name: str, args: argparse.Namespace) -> dict[str, Any]:
             shm=args.shm,
             warmup=args.warmup,
             window=args.window,
+            recorder={"compression": args.compression, "display": not args.no_display, "shuffle": not args.no_shuffle},
         )
         wall = time.perf_counter() - t
+        rec_mb = sum(Path(f).stat().st_size for f in s["recording"]["files"]) / 1e6 if s.get("recording") else 0.0
     measured = s["frames"][args.warmup :]
     dets = [d for r in measured for d in r["detections"]]
     err = sorted(d["truth_error_m"] for d in dets if d["truth_error_m"] is not None)
@@ -117,12 +130,14 @@ def run_case(name: str, args: argparse.Namespace) -> dict[str, Any]:
         f"{k.replace('_', ' ')} {100 * s['stage_share'][k]:.1f}% ({1e3 * s['stage_mean_s'][k]:.1f} ms)" for k in STAGES
     )
     print(f"  stages per frame: {shares}", flush=True)
+    if rec_mb:
+        print(f"  recording {rec_mb:.1f} MB, {rec_mb / total:.2f} MB a frame", flush=True)
     if dets:
         c = sorted(d["contrast_c_gamma"] for d in dets)[len(dets) // 2]
         e = f", median error to the truth {1e3 * err[len(err) // 2]:.2f} mm" if err else ""
         print(f"  detections: median C_γ {c:.1f}{e}", flush=True)
     s.pop("frames")
-    s["case"], s["frame_mb"] = name, a.rf.nbytes / 1e6
+    s["case"], s["frame_mb"], s["recording_mb"] = name, a.rf.nbytes / 1e6, rec_mb
     return s
 
 
@@ -135,16 +150,25 @@ def main() -> int:
     ap.add_argument("--n-freq", type=int, default=40, help="frequencies in the band (default 40)")
     ap.add_argument("--window", type=int, default=2, help="frames in flight (default 2; 1 = lowest latency)")
     ap.add_argument("--no-record", action="store_true", help="run without the recorder")
+    ap.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd", help="recorder chunks")
+    ap.add_argument("--no-shuffle", action="store_true", help="recorder: payloads as they travelled")
+    ap.add_argument("--no-display", action="store_true", help="recorder: no Foxglove display channels")
+    ap.add_argument("--map-encoding", choices=("uint16", "float32"), default="uint16", help="processor's maps")
+    ap.add_argument("--adc-bits", type=int, default=0, help="int16 RF of this many bits (default 0: float32)")
     ap.add_argument("--shm", default="auto", help="zenoh shared memory: auto, off or pool MiB (default auto)")
     ap.add_argument("--keep", action="store_true", help="keep the recordings under out/bench/<case>")
     ap.add_argument("--json", help="write the summaries as JSON")
     args = ap.parse_args()
+    recorder = f"on ({args.compression}, shuffle {not args.no_shuffle}, display {not args.no_display})"
     print(
-        f"bench_streaming: {os.cpu_count()} CPU(s), recorder {'off' if args.no_record else 'on'}, "
+        f"bench_streaming: {os.cpu_count()} CPU(s), load {os.getloadavg()[0]:.1f}, recorder "
+        f"{'off' if args.no_record else recorder}, "
+        f"maps {args.map_encoding}, RF {f'int16 ({args.adc_bits} bits)' if args.adc_bits else 'float32'}, "
         f"shm {args.shm}, {args.window} frame(s) in flight",
         flush=True,
     )
     results = [run_case(name, args) for name in ([args.only] if args.only else CASES)]
+    print(f"load after: {os.getloadavg()[0]:.1f}", flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2))
     return 0

@@ -49,6 +49,7 @@ __all__ = [
     "Status",
     "Track",
     "Tracks",
+    "UINT16_MAX",
     "VERSION_PATTERN",
     "examples",
 ]
@@ -86,6 +87,11 @@ class Message(_Model):
         """(major, minor) this code writes; it reads any minor of the same major."""
         major, minor = str(cls.model_fields["schema_version"].default).split(".")
         return int(major), int(minor)
+
+    def for_wire(self) -> Message:
+        """The message as it travels (``services.wire.encode`` writes this): itself, or for a lossy
+        encoding (:class:`GammaMap`, :class:`ConfocalImage` 1.1) a copy holding the integer codes."""
+        return self
 
 
 # ---------------------------------------------------------------------------------------------- parts
@@ -139,6 +145,70 @@ def nonfinite_path(value: Any, path: str) -> str | None:
     if isinstance(value, (list, tuple)):
         return next((p for i, v in enumerate(value) if (p := nonfinite_path(v, f"{path}[{i}]"))), None)
     return None
+
+
+#: largest code of a uint16-quantised map (GammaMap, ConfocalImage 1.1).
+UINT16_MAX = 65535
+#: largest level (dB) a linear float32 value can have (10·log10 of float32's maximum, ≈ 385.3 dB).
+_F32_MAX = float(np.finfo(np.float32).max)
+_F32_TOP_DB = 10 * math.log10(_F32_MAX)
+
+
+def _hold(model: BaseModel, name: str, value: Any) -> None:
+    """Set a field from a validator without re-running validation (validate_assignment would recurse)."""
+    model.__dict__[name] = value
+
+
+def quantise_linear(values: np.ndarray, step: float) -> np.ndarray:
+    """uint16 codes round(values / step), clipped to 0…65535 (GammaMap 1.1)."""
+    q = np.rint(np.asarray(values, np.float64) / step)
+    return np.clip(q, 0, UINT16_MAX).astype(np.uint16)
+
+
+def dequantise_linear(codes: np.ndarray, step: float) -> np.ndarray:
+    """float32 codes × step (read-only, like a decoded buffer)."""
+    if codes.size and int(np.max(codes)) * step > _F32_MAX:
+        raise ArrayFieldError("gamma_step", f"expected code × step within float32, got gamma_step {step:.6g}")
+    out = np.multiply(codes, np.float32(step), dtype=np.float32)  # codes are exact in float32
+    out.flags.writeable = False
+    return out
+
+
+def _levels(values: np.ndarray, scale: str) -> np.ndarray:
+    """Level in dB (float64): 10·log10(value) for a linear image (−inf at 0), the value for a dB image."""
+    v = np.asarray(values, np.float64)
+    if scale == "db":
+        return v
+    with np.errstate(divide="ignore"):
+        return 10.0 * np.log10(v)
+
+
+def _top_level(values: np.ndarray, scale: str) -> float:
+    """The image's largest level in dB (0 for an all-zero linear image); refuses a negative linear value."""
+    if scale == "linear":
+        lo, hi = float(np.min(values)), float(np.max(values))
+        if lo < 0:
+            raise ArrayFieldError("image", f"expected a linear image ≥ 0 to travel as dB codes, got {lo:.3g}")
+        return 10.0 * math.log10(hi) if hi > 0 else 0.0
+    return float(np.max(values))
+
+
+def quantise_db(values: np.ndarray, step: float, floor: float, scale: str) -> np.ndarray:
+    """uint16 codes round((L − floor) / step), clipped to 0…65535, of the image's level L in dB."""
+    q = np.rint((_levels(values, scale) - floor) / step)
+    return np.clip(np.nan_to_num(q, nan=0.0, neginf=0.0), 0, UINT16_MAX).astype(np.uint16)
+
+
+def dequantise_db(codes: np.ndarray, step: float, floor: float, scale: str) -> np.ndarray:
+    """float32 image (read-only) from dB codes: L = floor + code × step; linear: 10^(L/10), and 0 for code 0."""
+    if codes.size and floor + int(np.max(codes)) * step > _F32_TOP_DB and scale == "linear":
+        raise ArrayFieldError("db_floor", f"expected levels ≤ {_F32_TOP_DB:.1f} dB (float32), got db_floor {floor:.6g}")
+    level = floor + codes * np.float64(step)
+    if scale == "linear":
+        level = np.where(codes == 0, 0.0, 10.0 ** (level / 10.0))
+    out = level.astype(np.float32)
+    out.flags.writeable = False
+    return out
 
 
 def _check_on_grid(field: str, arr: np.ndarray, grid: Grid) -> None:
@@ -378,37 +448,110 @@ class RFFrame(Message):
 
 
 class GammaMap(Message):
-    """Likelihood map/volume γ(r) of one fingerprint for one frame (key ``fp/<rig>/gamma``)."""
+    """Likelihood map/volume γ(r) of one fingerprint for one frame (key ``fp/<rig>/gamma``).
+
+    1.1 added ``gamma_step`` (optional): with it, γ travels as uint16 codes q = round(γ / gamma_step), and
+    γ = q × gamma_step (error ≤ gamma_step / 2; docs/wire.md). In Python ``gamma`` is always float32:
+    built from uint16 codes (decoding) it holds their values; built from float32 with a step, it is
+    quantised when encoded (:meth:`for_wire`). Without a step γ travels as float32 (1.0)."""
 
     schema_name: Literal["GammaMap"] = "GammaMap"
+    schema_version: str = Field(default="1.1", pattern=VERSION_PATTERN, description="MAJOR.MINOR.")
     frame_index: int = Field(ge=0)
     timestamp: float = Field(description="Acquisition time of the input frame, s.")
     fingerprint: str
     state: dict[str, float] = Field(default_factory=dict, description="Dictionary state q.")
     grid: Grid
-    gamma: Annotated[np.ndarray, array_field("<f4", finite=True)] = Field(description="γ on the grid, float32.")
+    gamma: Annotated[np.ndarray, array_field("<f4", "<u2", finite=True)] = Field(
+        description="γ on the grid: float32, or uint16 codes with ``gamma_step`` (γ = gamma × gamma_step)."
+    )
     normalisation: Normalisation = Field(default_factory=Normalisation)
+    gamma_step: float | None = Field(
+        default=None,
+        gt=0,
+        description="γ value of one uint16 code: γ travels as codes round(γ / gamma_step) (error ≤ "
+        "gamma_step / 2); None: float32. Since 1.1.",
+    )
 
     @model_validator(mode="after")
     def _check(self) -> GammaMap:
         _check_on_grid("gamma", self.gamma, self.grid)
+        step = self.gamma_step
+        if self.gamma.dtype == np.uint16:
+            if step is None:
+                raise ArrayFieldError("gamma_step", "expected with uint16 γ (γ = gamma × gamma_step), got none")
+            _hold(self, "gamma", dequantise_linear(self.gamma, step))
+        elif step is not None and self.gamma.size:
+            lo, hi = float(np.min(self.gamma)), float(np.max(self.gamma))
+            if lo < 0:
+                raise ArrayFieldError("gamma", f"expected γ ≥ 0 to travel as uint16 codes, got {lo:.3g}")
+            if hi > (UINT16_MAX + 0.5) * step:
+                raise ArrayFieldError(
+                    "gamma_step", f"expected at least γ_max/{UINT16_MAX} = {hi / UINT16_MAX:.6g}, got {step:.6g}"
+                )
         return self
+
+    def for_wire(self) -> GammaMap:
+        """The message as it travels: with ``gamma_step``, a copy holding the uint16 codes."""
+        if self.gamma_step is None:
+            return self
+        return self.model_copy(update={"gamma": quantise_linear(self.gamma, self.gamma_step)})
 
 
 class ConfocalImage(Message):
-    """Confocal image |I(r)|² (linear) or in dB (key ``fp/<rig>/image``)."""
+    """Confocal image |I(r)|² (linear) or in dB (key ``fp/<rig>/image``).
+
+    1.1 added ``db_step`` and ``db_floor`` (optional): with them the image travels as uint16 codes of its
+    level L in dB (L = 10·log10(value) for a linear image, the value itself in dB): q = round((L −
+    db_floor) / db_step), clipped to 0…65535, and L = db_floor + q × db_step (error ≤ db_step / 2 in dB; a
+    linear image's code 0 reads 0, a dB image's reads db_floor). In Python ``image`` is always float32 in
+    its ``scale``, as for :class:`GammaMap`; built from float32 with a step and no floor, the floor is
+    the image's maximum level − 65535 × db_step (nothing clips at the top)."""
 
     schema_name: Literal["ConfocalImage"] = "ConfocalImage"
+    schema_version: str = Field(default="1.1", pattern=VERSION_PATTERN, description="MAJOR.MINOR.")
     frame_index: int = Field(ge=0)
     timestamp: float = Field(description="Acquisition time of the input frame, s.")
     grid: Grid
-    image: Annotated[np.ndarray, array_field("<f4", finite=True)] = Field(description="Image on the grid, float32.")
+    image: Annotated[np.ndarray, array_field("<f4", "<u2", finite=True)] = Field(
+        description="Image on the grid: float32, or uint16 codes of its level in dB with ``db_step`` and ``db_floor``."
+    )
     scale: Literal["linear", "db"] = "linear"
+    db_step: float | None = Field(
+        default=None,
+        gt=0,
+        description="dB per uint16 code: the image travels as codes of its level in dB (error ≤ db_step / 2 dB); "
+        "None: float32. Since 1.1.",
+    )
+    db_floor: float | None = Field(default=None, description="Level (dB) of code 0 of a uint16 image. Since 1.1.")
 
     @model_validator(mode="after")
     def _check(self) -> ConfocalImage:
         _check_on_grid("image", self.image, self.grid)
+        step, floor = self.db_step, self.db_floor
+        if self.image.dtype == np.uint16:
+            if step is None or floor is None:
+                missing = "db_step" if step is None else "db_floor"
+                raise ArrayFieldError(missing, "expected with a uint16 image (level dB = db_floor + code × db_step)")
+            _hold(self, "image", dequantise_db(self.image, step, floor, self.scale))
+        elif floor is not None and step is None:
+            raise ArrayFieldError("db_floor", "expected only with db_step")
+        elif step is not None and self.image.size:
+            top = _top_level(self.image, self.scale)
+            if floor is None:
+                _hold(self, "db_floor", top - UINT16_MAX * step)
+            elif top > floor + (UINT16_MAX + 0.5) * step:
+                raise ArrayFieldError(
+                    "db_floor",
+                    f"expected at least {top - UINT16_MAX * step:.6g} (top level {top:.6g} dB), got {floor:.6g}",
+                )
         return self
+
+    def for_wire(self) -> ConfocalImage:
+        """The message as it travels: with ``db_step``, a copy holding the uint16 codes of the dB level."""
+        if self.db_step is None or self.db_floor is None:
+            return self
+        return self.model_copy(update={"image": quantise_db(self.image, self.db_step, self.db_floor, self.scale)})
 
 
 class Detections(Message):

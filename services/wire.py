@@ -107,6 +107,7 @@ def _layout(msg: Message) -> tuple[bytes, list[tuple[int, np.ndarray]]]:
     """Header bytes and (offset in data section, array) for each buffer."""
     if not isinstance(msg, Message):
         raise TypeError(f"expected a services.messages.Message, got {type(msg).__name__}")
+    msg = msg.for_wire()  # quantised γ / confocal image: their uint16 codes (GammaMap, ConfocalImage 1.1)
     found: dict[int, tuple[str, np.ndarray]] = {}
     _collect_arrays(msg, "", found)
     descriptors: list[dict[str, Any]] = []

@@ -26,7 +26,7 @@ from services.bus import BusConfig, FifoSlot, LatestSlot, free_port, open_sessio
 from services.messages import RFFrame
 from services.nodes.processor import Processor, ProcessorConfig
 from services.nodes.publisher import Publisher
-from services.recording import JSON_SCHEMAS, iter_raw
+from services.recording import JSON_SCHEMAS, SHUFFLED_ENCODING, iter_raw, wire_payload
 from services.registry import FingerprintSpec, dictionary_request
 from services.sources import AcquisitionSource, IngestSource, MCAPSource, born_frames
 from services.topics import keys
@@ -202,9 +202,13 @@ def test_end_to_end_record_and_replay(data, tmp_path) -> None:
         rec: dict[str, list[bytes]] = {}
         schemas: dict[str, str] = {}
         for schema, channel, msg in iter_raw(mcap_path):
-            rec.setdefault(channel.topic, []).append(bytes(msg.data))
+            rec.setdefault(channel.topic, []).append(wire_payload(channel, msg) or bytes(msg.data))
             expected = (
-                "protobuf" if "/display/" in channel.topic else "json" if schema.name in JSON_SCHEMAS else "fpwire"
+                "protobuf"
+                if "/display/" in channel.topic
+                else "json"
+                if schema.name in JSON_SCHEMAS
+                else SHUFFLED_ENCODING
             )
             assert channel.message_encoding == expected  # JSON: no arrays; protobuf: Foxglove display views
             schemas[channel.topic] = schema.name
@@ -307,7 +311,7 @@ def test_malformed_frames_are_reported_and_recorded(data, tmp_path) -> None:
         recorded: dict[bytes, str] = {}
         for schema, channel, msg in iter_raw(mcap_path):
             if channel.topic == k.rf:
-                recorded[bytes(msg.data)] = schema.name
+                recorded[wire_payload(channel, msg) or b""] = schema.name
         for name, (payload, _) in bad.items():
             assert payload in recorded, name  # the raw bad message is kept
         assert recorded[bad["version"][0]] == "unknown"

@@ -77,6 +77,13 @@ def add_process_parser(sub: argparse._SubParsersAction) -> None:
         help="heuristic: skip maxima within the diffraction resolution of the grid's border",
     )
     img.add_argument("--no-image", action="store_true", help="do not publish the confocal image")
+    img.add_argument(
+        "--map-encoding",
+        choices=("uint16", "float32"),
+        default="uint16",
+        help="how γ-maps and the confocal image travel (and are recorded): uint16 codes (default; γ within "
+        "γ_max/131070, the image in dB within 0.005 dB; detections are computed before, on float γ) or float32",
+    )
     img.add_argument("--no-track", action="store_true", help="do not run the tracker")
     img.add_argument(
         "--track-integrate",
@@ -166,6 +173,7 @@ def config_from_args(args: argparse.Namespace) -> ProcessorConfig:
         interior=args.skip_border,
         max_frame_bytes=args.max_frame_bytes,
         publish_image=not args.no_image,
+        map_encoding=args.map_encoding,
         track=not args.no_track,
         track_integrate=args.track_integrate,
         status_period=args.status_period,

@@ -42,6 +42,12 @@ def add_record_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--compression", choices=tuple(COMPRESSION), default="zstd", help="chunk compression (default zstd)")
     p.add_argument(
+        "--no-shuffle",
+        action="store_true",
+        help="record RF, γ and confocal payloads exactly as they travelled (fpwire) instead of byte-shuffled "
+        "(fpwire-shuffled, the default under compression: 12–17 %% smaller; docs/wire.md)",
+    )
+    p.add_argument(
         "--no-display",
         action="store_true",
         help="no Foxglove display channels (fp/<rig>/display/…: sections and scene), only the bus messages",
@@ -87,6 +93,7 @@ def run_record(args: argparse.Namespace) -> int:
             include=args.include,
             exclude=args.exclude,
             display=not args.no_display,
+            shuffle=not args.no_shuffle,
         )
         with rec:
             print(json.dumps({"ready": True, "key_expr": rec.key_expr, "output": str(out)}), flush=True)

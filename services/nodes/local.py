@@ -45,6 +45,7 @@ def run_pipeline(
     warmup: int = 0,
     timeout: float = 600.0,
     hub: str | None = None,
+    recorder: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Publisher + processor + recorder in one process, over zenoh on loopback; returns when every frame
     is processed (and recorded). ``fp demo`` and the benchmark call it.
@@ -59,7 +60,8 @@ def run_pipeline(
     per-frame detections. ``warmup`` frames are left out of the rate, latency and stage statistics
     (the first messages of a session page-fault its shared-memory pool: ≈ 0.5 s once, see services.bus).
     ``hub``: the endpoint the processor's session listens on (default: a free loopback port; `fp demo` gives
-    the well-known ``tcp/127.0.0.1:7447`` so that `fp view --live` finds it).
+    the well-known ``tcp/127.0.0.1:7447`` so that `fp view --live` finds it). ``recorder``: keyword arguments of
+    the ``Recorder`` (``compression``, ``display``, ``shuffle``, …; the bench compares them).
     """
     src: Source = SimulatorSource(source, n_frames=n_frames, quick=quick) if isinstance(source, str) else source
     if fingerprints is None:
@@ -105,7 +107,7 @@ def run_pipeline(
         if record:
             s_rec = stack.enter_context(open_session(BusConfig(listen=[EPHEMERAL], connect=[hub], shm=shm)))
             stamp = time.strftime("%Y%m%dT%H%M%S")
-            rec = stack.enter_context(Recorder(s_rec, out / f"{rig}-{stamp}.mcap", rig=rig))
+            rec = stack.enter_context(Recorder(s_rec, out / f"{rig}-{stamp}.mcap", rig=rig, **(recorder or {})))
         s_pub = stack.enter_context(open_session(BusConfig(listen=[EPHEMERAL], connect=[hub], shm=shm, warm_shm=True)))
         pub = Publisher(
             s_pub,

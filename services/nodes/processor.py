@@ -41,7 +41,7 @@ from typing import Any
 import zenoh
 
 from services.bus import FifoSlot, LatestSlot, sample_publish_time
-from services.convert import frame_messages
+from services.convert import MAP_ENCODINGS, frame_messages
 from services.messages import ErrorReport, RFFrame
 from services.nodes.base import Node, frame_rate, latency_summary, start_warmed_thread, status_message
 from services.nodes.frame_errors import failure_report, truth_report
@@ -73,10 +73,13 @@ class ProcessorConfig(PipelineConfig):
     max_frame_bytes: int = DEFAULT_MAX_BYTES
     status_period: float = 1.0
     blas_threads: int | None = 1
+    map_encoding: str = "uint16"  # how γ and the confocal image travel: "uint16" codes or "float32" (convert)
 
     def __post_init__(self) -> None:
         if self.queue not in ("newest", "fifo"):
             raise ValueError(f"--queue: expected 'newest' or 'fifo', got {self.queue!r}")
+        if self.map_encoding not in MAP_ENCODINGS:
+            raise ValueError(f"--map-encoding: expected uint16 or float32, got {self.map_encoding!r}")
         super().__post_init__()
 
 
@@ -264,7 +267,7 @@ class Processor(Node):
             )
         t3 = time.perf_counter()
         fi, ts = msg.frame_index, msg.timestamp
-        out = frame_messages(res, fi, ts)
+        out = frame_messages(res, fi, ts, self.cfg.map_encoding)  # detections above used float γ
         if out["image"] is not None:
             self.publish("image", out["image"])
         for g in out["gamma"]:

@@ -17,7 +17,11 @@ it) goes to MCAP:
   ``foxglove.SceneUpdate``), unless ``display=False``;
 * log_time = receive time, publish_time = the sender's zenoh timestamp (both ns since the epoch);
   sequence = per-channel counter;
-* zstd chunk compression by default (``none`` and ``lz4`` too); flushed every ``flush_interval`` (0.5 s):
+* RF, γ and confocal payloads byte-shuffled in place under compression (``shuffle``, default; encoding
+  ``fpwire-shuffled``, ``services.recording.shuffle_payload``): 12–17 % smaller with zstd; a payload is
+  decoded only for the display channels that use it (never with ``display=False``);
+* zstd chunk compression (level 1, ``services.recording.use_zstd_level``) by default (``none`` and ``lz4``
+  too); flushed every ``flush_interval`` (0.5 s):
   ``Writer.flush()`` closes the open chunk, so a killed recorder loses at most the last interval
   (``services.recording.recover`` salvages the rest);
 * rotation by size (``max_bytes``) and/or age (``max_seconds``): segments ``<stem>-000.mcap``, …
@@ -44,7 +48,16 @@ from mcap.writer import Writer
 
 from services.messages import MESSAGE_TYPES, Message
 from services.nodes.base import Node
-from services.recording import COMPRESSION, JSON_ENCODING, JSON_SCHEMAS, MESSAGE_ENCODING, UNKNOWN_SCHEMA
+from services.recording import (
+    COMPRESSION,
+    JSON_ENCODING,
+    JSON_SCHEMAS,
+    MESSAGE_ENCODING,
+    SHUFFLED_ENCODING,
+    UNKNOWN_SCHEMA,
+    shuffle_payload,
+    use_zstd_level,
+)
 from services.schemas_gen import render
 from services.topics import ALL_RIGS
 from services.wire import WireError, decode, decode_header, extract_header
@@ -52,6 +65,8 @@ from services.wire import WireError, decode, decode_header, extract_header
 __all__ = ["Recorder"]
 
 log = logging.getLogger("fp.recorder")
+#: schemas the display channels are made from (the others are never decoded for them).
+_DISPLAYED = frozenset({"RFFrame", "GammaMap", "ConfocalImage", "Detections", "Tracks"})
 
 
 @dataclass
@@ -83,8 +98,9 @@ def _schema_of(payload: bytes, attachment: bytes | None) -> tuple[str, dict[str,
 class _Segment:
     """One MCAP file being written, with its own schema/channel registrations."""
 
-    def __init__(self, path: Path, compression: str, chunk_size: int, key_expr: str) -> None:
+    def __init__(self, path: Path, compression: str, chunk_size: int, key_expr: str, shuffle: bool = False) -> None:
         self.path = path
+        self.shuffle = shuffle
         self.file: IO[bytes] = open(path, "wb")  # closed in finish()
         self.writer = Writer(self.file, chunk_size=chunk_size, compression=COMPRESSION[compression])
         self.writer.start(profile="", library="fingerprint services.nodes.recorder")
@@ -92,7 +108,7 @@ class _Segment:
             "fingerprint",
             {
                 "wire": "FPWIRE01",
-                "message_encoding": MESSAGE_ENCODING,
+                "message_encoding": SHUFFLED_ENCODING if shuffle else MESSAGE_ENCODING,
                 "key_expr": key_expr,
                 "started": datetime.now(timezone.utc).isoformat(),
             },
@@ -135,11 +151,13 @@ class _Segment:
         self.messages += 1
         self.unflushed += 1
 
-    def write(self, rec: _Received) -> Message | None:
-        """Record one bus message (see the module doc); returns it decoded, or None if it does not decode."""
+    def write(self, rec: _Received, decoded: frozenset[str] = frozenset()) -> Message | None:
+        """Record one bus message (see the module doc). Returns it decoded when its schema is in ``decoded``
+        (what the display channels use) and it decodes; messages recorded as JSON are always decoded (only a
+        valid one is), the others never needlessly (their payload is recorded as it came)."""
         label, meta = _schema_of(rec.payload, rec.attachment)
         msg: Message | None = None
-        if label != "unknown":
+        if label != "unknown" and (label in JSON_SCHEMAS or label in decoded):
             try:
                 msg = decode(rec.payload)
             except WireError:
@@ -147,6 +165,8 @@ class _Segment:
         data, encoding = rec.payload, MESSAGE_ENCODING
         if msg is not None and label in JSON_SCHEMAS:
             data, encoding = extract_header(rec.payload), JSON_ENCODING
+        elif self.shuffle:
+            data, encoding = shuffle_payload(rec.payload), SHUFFLED_ENCODING
         self.add(self.channel(rec.key, label, meta, encoding), rec.log_ns, data, rec.pub_ns)
         return msg
 
@@ -201,9 +221,11 @@ class Recorder(Node):
         include: list[str] | None = None,
         exclude: list[str] | None = None,
         display: bool = True,
+        shuffle: bool = True,
     ) -> None:
         if compression not in COMPRESSION:
             raise ValueError(f"--compression: expected one of {', '.join(COMPRESSION)}, got {compression!r}")
+        use_zstd_level()
         if flush_interval <= 0:
             raise ValueError(f"--flush-interval: expected > 0 s, got {flush_interval}")
         self.include = _key_exprs("--include", include)
@@ -213,6 +235,7 @@ class Recorder(Node):
         self.key_expr = self.keys.all if rig else key_expr
         self.rig = rig
         self.compression = compression
+        self.shuffle = shuffle and compression != "none"  # shuffled bytes only pay under compression
         self.flush_interval = flush_interval
         self.max_bytes = max_bytes
         self.max_seconds = max_seconds
@@ -254,7 +277,7 @@ class Recorder(Node):
     def _open_segment(self) -> None:
         path = self._next_path()
         path.parent.mkdir(parents=True, exist_ok=True)
-        self._segment = _Segment(path, self.compression, self.chunk_size, self.key_expr)
+        self._segment = _Segment(path, self.compression, self.chunk_size, self.key_expr, self.shuffle)
         self.files.append(path)
 
     def _open(self) -> None:
@@ -310,7 +333,7 @@ class Recorder(Node):
                 if rec is None and not idle:
                     break
                 if rec is not None:
-                    msg = seg.write(rec)
+                    msg = seg.write(rec, _DISPLAYED if self.display is not None else frozenset())
                     if msg is not None and self.display is not None:
                         seg.write_display(self.display.feed(rec.key, msg, rec.log_ns), rec.log_ns)
                     self.counts[rec.key] += 1

@@ -9,14 +9,22 @@ with their axes in metres. Pure numpy: no viewer imported.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from services.messages import ConfocalImage, Detection, Detections, GammaMap, Grid, Message, RFFrame
 
-__all__ = ["FrameAssembler", "ReadyFrame", "Section", "confocal_db", "sections", "truth_targets"]
+__all__ = [
+    "FrameAssembler",
+    "ReadyFrame",
+    "Section",
+    "confocal_db",
+    "confocal_db_sections",
+    "sections",
+    "truth_targets",
+]
 
 DB_FLOOR = -30.0
 
@@ -55,13 +63,24 @@ def sections(grid: Grid, vol: np.ndarray, at: np.ndarray) -> list[Section]:
     ]
 
 
+def _to_db(values: np.ndarray, top: float, scale: str) -> np.ndarray:
+    if scale == "db":
+        db = values - top
+    else:
+        db = 10 * np.log10(values / max(top, 1e-30) + 1e-12)
+    return np.maximum(db, DB_FLOOR).astype(np.float32)
+
+
 def confocal_db(image: ConfocalImage) -> np.ndarray:
     """The confocal image in dB relative to its maximum, floored at :data:`DB_FLOOR`."""
-    if image.scale == "db":
-        db = image.image - float(np.max(image.image))
-    else:
-        db = 10 * np.log10(image.image / max(float(np.max(image.image)), 1e-30) + 1e-12)
-    return np.maximum(db, DB_FLOOR).astype(np.float32)
+    return _to_db(image.image, float(np.max(image.image)), image.scale)
+
+
+def confocal_db_sections(image: ConfocalImage, at: np.ndarray, top: float | None = None) -> list[Section]:
+    """:func:`sections` of :func:`confocal_db`, converting only the sections (``top``: the image's maximum,
+    when already known)."""
+    top = float(np.max(image.image)) if top is None else top
+    return [replace(sec, data=_to_db(sec.data, top, image.scale)) for sec in sections(image.grid, image.image, at)]
 
 
 def truth_targets(frame: RFFrame) -> list[tuple[str, np.ndarray, float | None]]:

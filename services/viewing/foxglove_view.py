@@ -21,7 +21,7 @@ import numpy as np
 
 from services.messages import ConfocalImage, Detections, GammaMap, Message, RFFrame, Tracks
 from services.topics import parse_key
-from services.viewing.display import FrameAssembler, ReadyFrame, Section, confocal_db, sections, truth_targets
+from services.viewing.display import FrameAssembler, ReadyFrame, Section, confocal_db_sections, sections, truth_targets
 
 __all__ = ["ARROW_SECONDS", "FRAME_ID", "FoxgloveDisplay", "display_topic"]
 
@@ -160,12 +160,13 @@ class FoxgloveDisplay:
     # -- messages ---------------------------------------------------------------------------------------
     def _sections(self, rig: str, fr: ReadyFrame, t_ns: int) -> list[tuple[str, Any]]:
         out = []
-        conf = confocal_db(fr.image) if fr.image is not None else None
+        img = fr.image
+        top = float(np.max(img.image)) if img is not None and img.image.size else None
         for g, at, _det in fr.gammas:
             for sec in sections(g.grid, g.gamma, at):
                 out.append((display_topic(rig, "gamma", g.fingerprint, sec.plane), section_grid(sec, "gamma", t_ns)))
-            if conf is not None and fr.image is not None and fr.image.grid.shape == g.grid.shape:
-                for sec in sections(fr.image.grid, conf, at):
+            if img is not None and top is not None and img.grid.shape == g.grid.shape:
+                for sec in confocal_db_sections(img, at, top):  # dB of the sections only, not of the volume
                     topic = display_topic(rig, "confocal", g.fingerprint, sec.plane)
                     out.append((topic, section_grid(sec, "confocal_db", t_ns)))
         return out

@@ -47,6 +47,7 @@ def make_sample_recording(
             out_dir=tmp,
             n_frames=n_frames,
             processor=ProcessorConfig(rig="demo", queue="fifo", grid=grid),
+            recorder={"shuffle": False},  # the sample keeps the payloads exactly as they travelled (fpwire)
         )
         sources = (
             m for src in summary["recording"]["files"] for m in iter_raw(src) if m[1].topic.split("/")[2] not in drop
