@@ -94,6 +94,8 @@ def main() -> int:
     args = ap.parse_args()
     has_shuffle = "shuffle" in inspect.signature(rec_mod._Segment.__init__).parameters
     level = getattr(__import__("services.recording", fromlist=["x"]), "ZSTD_LEVEL", 3)
+    if "map_encoding" not in inspect.signature(convert.frame_messages).parameters:
+        args.map_encoding = "float32 (this checkout has no map encoding)"
     print(
         f"bench_recorder_cpu: {rec_mod.__file__}; load {os.getloadavg()[0]:.1f}; grid {args.grid}; "
         f"RF {'float32' if args.float_rf else 'int16'}; maps {args.map_encoding}; zstd level {level}",
