@@ -47,7 +47,7 @@ def test_frames_without_prf_skip_the_velocity_estimate_and_say_so_once() -> None
     src = SimulatorSource("fast-cylinder", n_frames=2, quick=True)
     pipe = Pipeline(PipelineConfig(publish_image=False), _specs(src, GRID))
     notices = []
-    for acq in src.scenario.frames():
+    for acq in (src.scenario.frame(i) for i in range(2)):
         acq = dataclasses.replace(acq, sequence=dataclasses.replace(acq.sequence, prf=None))
         res = pipe.process(acq)
         notices += res.notices
@@ -153,3 +153,44 @@ def test_dictionary_add_request_takes_a_velocity_grid() -> None:
         spec_from_request("p", b'{"model": "point", "velocity_grid": 0.5}', b"")
     with pytest.raises(ValueError, match="add: velocity_grid: expected VMAX"):
         spec_from_request("p", b'{"model": "point", "velocity_grid": "fast"}', b"")
+
+
+def test_processor_reports_frames_without_prf_once_and_goes_on() -> None:
+    """fp process with a velocity grid, frames without PRF (RFFrame 1.0 writers): one ErrorReport naming
+    'prf', every frame still acknowledged with its detections (no velocity estimate)."""
+    import threading
+    import time
+
+    from services.bus import BusConfig, free_port, open_session
+    from services.messages import Detections, ErrorReport, RFFrame
+    from services.nodes.processor import Processor
+    from services.topics import keys
+    from services.wire import decode, encode_with_header
+
+    src = SimulatorSource("fast-cylinder", n_frames=2, quick=True)
+    k = keys("noprf")
+    got: dict[str, list[Any]] = {"errors": [], "detections": []}
+    lock = threading.Lock()
+
+    def on(sample: Any) -> None:
+        msg = decode(sample.payload.to_bytes())
+        with lock:
+            got["errors" if isinstance(msg, ErrorReport) else "detections"].append(msg)
+
+    cfg = ProcessorConfig(rig="noprf", queue="fifo", publish_image=False)
+    bus = BusConfig(listen=[f"tcp/127.0.0.1:{free_port()}"], connect=[], shm="off")
+    with open_session(bus) as s, Processor(s, cfg, _specs(src, GRID)):
+        subs = [s.declare_subscriber(k.errors, on), s.declare_subscriber(k.detections, on)]
+        for acq in (src.scenario.frame(i) for i in range(2)):
+            frame = RFFrame.from_acquisition(acq).model_copy(update={"prf": None})
+            payload, header = encode_with_header(frame)
+            s.put(k.rf, payload, attachment=header)
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and (len(got["detections"]) < 2 or not got["errors"]):
+            time.sleep(0.05)
+        for sub in subs:
+            sub.undeclare()
+    dets = [m for m in got["detections"] if isinstance(m, Detections)]
+    assert len(dets) == 2 and all(d.detections for d in dets)
+    assert all(det.velocity_m_s is None for d in dets for det in d.detections)
+    assert len(got["errors"]) == 1 and got["errors"][0].field == "prf" and "velocity" in got["errors"][0].problem
