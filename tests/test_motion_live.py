@@ -194,3 +194,35 @@ def test_processor_reports_frames_without_prf_once_and_goes_on() -> None:
     assert len(dets) == 2 and all(d.detections for d in dets)
     assert all(det.velocity_m_s is None for d in dets for det in d.detections)
     assert len(got["errors"]) == 1 and got["errors"][0].field == "prf" and "velocity" in got["errors"][0].problem
+
+
+def test_sharded_merger_tracks_with_the_workers_velocity_estimates() -> None:
+    """fp merge (router) + one fp worker in this process: the worker's Detections carry the velocity estimates
+    and the merger's tracker takes them as measurements (services.convert.motion_of), so after two frames
+    the track's velocity is within half a step of the truth (a track without them still has ≈ 0)."""
+    from services.bus import BusConfig, free_port, open_session
+    from services.messages import Tracks
+    from services.nodes.merger import Merger, MergerConfig
+    from services.nodes.publisher import Publisher
+    from services.nodes.worker import Worker, WorkerConfig
+    from services.sources import AcquisitionSource
+    from services.topics import keys
+    from services.wire import decode
+
+    src = SimulatorSource("fast-cylinder", n_frames=2, quick=True)
+    frames = [src.scenario.frame(i) for i in range(2)]
+    port, rig = free_port(), "vshard"
+    hub = BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{port}"], connect=[], shm="off")
+    client = BusConfig(mode="client", listen=None, connect=[f"tcp/127.0.0.1:{port}"], shm="off")
+    k = keys(rig)
+    tracks: list[Tracks] = []
+    with open_session(hub) as hs, open_session(client) as ws, open_session(client) as ps:
+        with Worker(ws, WorkerConfig(rig=rig, name="w1", publish_image=False), _specs(src, GRID)):
+            with Merger(hs, MergerConfig(rig=rig, queue="fifo", min_workers=1, wait_workers_s=60)):
+                sub = ps.declare_subscriber(k.tracks, lambda s: tracks.append(decode(s.payload.to_bytes())))
+                Publisher(ps, rig, AcquisitionSource(frames), pace="ack", window=1, wait_timeout=60).run()
+                sub.undeclare()
+    last = max(tracks, key=lambda t: t.frame_index)
+    v = frames[-1].ground_truth.target("cylinder").velocity
+    assert last.frame_index == 1 and last.tracks
+    assert np.all(np.abs(np.asarray(last.tracks[0].velocity_m_s) - v) <= 0.05 + 1e-9)
