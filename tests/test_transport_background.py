@@ -39,6 +39,33 @@ def test_dispersion_law_is_anchored_rayleigh_below_the_crossover_and_saturates_a
         ScatteringLayer(z_surface=5e-3, ls=1e-3, ls_exponent=4.0)
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_diffusion_reflectance_conserves_flux_and_a_slab_lets_the_rest_through(dim: int) -> None:
+    """Lossless diffusion (docs/design.md §6.3): a half-space returns all the flux (∫ρ ds = 1, the Lévy
+    density); a slab whose extrapolated boundaries are L' = L + 2z_e apart returns 1 − z₁/L' (gambler's
+    ruin of a walker started at z₁ = ℓ_s + z_e); a very thick slab is the half-space."""
+    ls = 1.8e-3
+    half = ScatteringLayer(z_surface=5e-3, ls=ls, envelope="diffusion")
+    s = np.geomspace(1e-7, 400.0, 400_001)
+    total = float(np.trapezoid(half.reflectance_density(s, dim=dim), s))
+    assert total == pytest.approx(1.0, abs=0.01)
+    dp, z_e = half.diffusion_constants(dim)
+    assert dp == pytest.approx(ls / dim)
+    assert z_e == pytest.approx(2 * ls / 3 if dim == 3 else np.pi * ls / 4)
+    thick = 12e-3
+    slab = ScatteringLayer(z_surface=5e-3, ls=ls, envelope="diffusion", thickness=thick)
+    s_slab = np.geomspace(1e-7, 2.0, 200_001)  # the slab's slowest mode has decayed by e^{-16} at 0.4 m
+    kept = float(np.trapezoid(slab.reflectance_density(s_slab, dim=dim), s_slab))
+    assert kept == pytest.approx(1 - (ls + z_e) / (thick + 2 * z_e), abs=0.01)
+    deep = ScatteringLayer(z_surface=5e-3, ls=ls, envelope="diffusion", thickness=10.0)
+    early = np.linspace(1e-3, 0.2, 50)
+    np.testing.assert_allclose(
+        deep.reflectance_density(early, dim=dim), half.reflectance_density(early, dim=dim), rtol=1e-9
+    )
+    with pytest.raises(ValueError, match="thickness"):
+        ScatteringLayer(z_surface=5e-3, ls=ls, thickness=0.0)
+
+
 def test_ballistic_echo_is_filtered_by_l_ext_of_each_frequency() -> None:
     lay = _layer()
     probe = Probe.linear(16, 0.34e-3, 2.2e6, 0.8e6)

@@ -111,7 +111,7 @@ class DiffuseBackground:
         v = c0 if layer.energy_velocity is None else layer.energy_velocity
         # Angular spread of the halo seen from the array at the middle of the window.
         mid = window.t0 + 0.5 * window.duration - 2 * layer.z_surface / c0
-        b = float(np.sqrt(layer.halo_radius2(np.array(max(mid, 0.0) * v), aperture_radius)))
+        b = float(np.sqrt(layer.halo_radius2(np.array(max(mid, 0.0) * v), aperture_radius, dim)))
         self.s_d = b / np.hypot(b, layer.z_surface)
         # Direction grid: spatial period λ_min/Δs ≥ 1.2 × the array extent; aligned with the transmits'
         # lattice when reciprocity is asked for (module doc).

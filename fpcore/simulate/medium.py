@@ -28,8 +28,9 @@ Physics (paper Supplementary S1, S4; docs/design.md §6):
     e^{−z/ℓ_s}. All orders, the single one included, are drawn as one Gaussian field (the medium's
     single scattering is then not focused like a speckle image; add Born points for that, as in
     ``lesion-marker``). ``envelope="diffusion"``: the half-space diffusion approximation with an
-    extrapolated boundary (Patterson, Chance & Wilson 1989; z_e = 2ℓ_s/3),
-    ρ(s) = z₁ (4π D' s³)^{-1/2} exp(−z₁²/(4D's)) e^{−s/ℓ_a}, z₁ = ℓ_s + z_e, D' = ℓ_s/3; its power-law
+    extrapolated boundary (Patterson, Chance & Wilson 1989; z_e = 2ℓ_s/3 in 3-D, πℓ_s/4 in 2-D),
+    ρ(s) = z₁ (4π D' s³)^{-1/2} exp(−z₁²/(4D's)) e^{−s/ℓ_a}, z₁ = ℓ_s + z_e, D' = ℓ_s/d in d dimensions
+    (a slab of finite ``thickness`` adds the images of its bottom, `reflectance_density`); its power-law
     tail makes the contrast fall faster than e^{−z/ℓ_s} (bench/validate_simulate.py prints both);
   - *level*: ρ is multiplied by the fraction of the diffuse halo (b² = a² + 4D's) still under the
     insonified aperture (radius a) and by the reception of that Lambertian halo at the array
@@ -71,7 +72,9 @@ class ScatteringLayer:
     envelope: "escape" (default) or "diffusion" (module doc); gain multiplies the background power.
     Transport additions (`diffuse` module doc, docs/design.md §6.3): ls_exponent, f_ref, f_cross give
     ℓ_s(f) (`ls_at`); single_scattering "envelope" (all orders in the Gaussian field) or "field" (the first
-    order as a focused speckle, `single_scattering`); cbs: reciprocity and coherent backscattering.
+    order as a focused speckle, `single_scattering`); cbs: reciprocity and coherent backscattering;
+    thickness: the medium's thickness below the surface (m; inf: a half-space), which bounds the diffusion
+    envelope (`reflectance_density`).
     """
 
     z_surface: float
@@ -90,6 +93,7 @@ class ScatteringLayer:
     f_cross: float = 0.0
     single_scattering: str = "envelope"
     cbs: bool = False
+    thickness: float = np.inf
 
     def __post_init__(self) -> None:
         if self.single_scattering not in ("envelope", "field"):
@@ -102,6 +106,8 @@ class ScatteringLayer:
             raise ValueError(f"attenuation_depth: expected 'centre' or 'front', got {self.attenuation_depth!r}")
         if not (self.ls > 0 and self.la > 0):
             raise ValueError("ls, la: expected positive mean free paths")
+        if not self.thickness > 0:
+            raise ValueError(f"thickness: expected a positive slab thickness in m (or inf), got {self.thickness!r}")
 
     @property
     def l_ext(self) -> float:
@@ -192,10 +198,24 @@ class ScatteringLayer:
         return (r[:, None, :] * np.exp(-1j * k[:, None, None] * path[None, :, :])).astype(np.complex64)
 
     # -- multiple-scattering envelope -------------------------------------------------------------
-    def reflectance_density(self, s: np.ndarray, orders_from: int = 1) -> np.ndarray:
+    def diffusion_constants(self, dim: int = 3) -> tuple[float, float]:
+        """(D', z_e): the diffusion constant per unit path, D' = ℓ_s/d (D = v ℓ_t/d, isotropic scattering:
+        ℓ_t = ℓ_s), and the extrapolation length, z_e = 2ℓ_s/3 in 3-D and πℓ_s/4 in 2-D (index-matched
+        boundary; Ishimaru 1978; Akkermans & Montambaux 2007, ch. 5; docs/design.md §6.3). The escape
+        envelope, an order-of-scattering model kept for the legacy conventions, keeps the 3-D values."""
+        ls = self.ls
+        if dim == 3 or self.envelope == "escape":  # the escape model keeps its 3-D spread (legacy rig)
+            return ls / 3.0, 2.0 * ls / 3.0
+        return ls / 2.0, np.pi * ls / 4.0
+
+    def reflectance_density(self, s: np.ndarray, orders_from: int = 1, dim: int = 3) -> np.ndarray:
         """ρ(s) per unit path length (1/m) of the multiply scattered flux (module doc); orders_from=2
         drops the single-scattering order (escape: its n = 1 term e^{−s/ℓ_s}/(2ℓ_s); diffusion: the
-        approximation has no separate first order and is kept whole)."""
+        approximation has no separate first order and is kept whole). Diffusion in `dim` dimensions: the
+        flux through the extrapolated boundary of a source at z₁ = ℓ_s + z_e; for a slab (finite
+        `thickness` L) the images of both extrapolated boundaries, 2m(L + 2z_e) apart (Patterson, Chance &
+        Wilson 1989; Contini, Martelli & Zaccanti 1997):
+        ρ(s) = Σ_m (z₁ + 2mL') (4πD's³)^{-1/2} exp(−(z₁ + 2mL')²/(4D's)), L' = L + 2z_e, m ∈ ℤ."""
         s = np.maximum(np.asarray(s, dtype=np.float64), 0.0)
         ls, la = self.ls, self.la
         absorb = np.exp(-s / la)
@@ -204,14 +224,23 @@ class ScatteringLayer:
             if orders_from >= 2:
                 rho = rho - np.exp(-s / ls) * absorb / (2 * ls)
             return rho
-        z1 = ls * (1 + 2.0 / 3.0)
-        dp = ls / 3.0
-        with np.errstate(divide="ignore", invalid="ignore"):
-            rho = z1 / np.sqrt(4 * np.pi * dp * s**3) * np.exp(-(z1**2) / (4 * dp * s))
-        return np.where(s > 0, rho, 0.0) * absorb
+        dp, z_e = self.diffusion_constants(dim)
+        z1 = ls + z_e
+        span = self.thickness + 2 * z_e
+        orders: range | tuple[int, ...] = (0,)
+        if np.isfinite(span):  # images out to 6.3 diffusion lengths √(4D's) beyond the longest path
+            m_max = int(np.ceil(np.sqrt(40 * dp * float(s.max(initial=0.0))) / (2 * span))) + 1
+            orders = range(-m_max, m_max + 1)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            rho = np.zeros_like(s)
+            for m in orders:
+                zm = z1 + 2 * m * span if m else z1
+                rho = rho + zm / np.sqrt(4 * np.pi * dp * s**3) * np.exp(-(zm**2) / (4 * dp * s))
+        return np.where(s > 0, np.nan_to_num(rho), 0.0) * absorb
 
-    def halo_radius2(self, s: np.ndarray, aperture_radius: float) -> np.ndarray:
-        return aperture_radius**2 + 4 * (self.ls / 3.0) * np.maximum(s, 0.0)
+    def halo_radius2(self, s: np.ndarray, aperture_radius: float, dim: int = 3) -> np.ndarray:
+        """b² = a² + 4D's: the diffuse halo's squared radius after a path s (module doc)."""
+        return aperture_radius**2 + 4 * self.diffusion_constants(dim)[0] * np.maximum(s, 0.0)
 
     def intensity(
         self, tau: np.ndarray, c0: float, aperture_radius: float, dim: int, pulse_energy: float, orders_from: int = 1
@@ -219,7 +248,7 @@ class ScatteringLayer:
         """⟨M(t)²⟩ (relative to the incident pulse peak²) τ = t − t_on after the surface echo."""
         v = c0 if self.energy_velocity is None else self.energy_velocity
         s = v * np.maximum(np.asarray(tau, dtype=np.float64), 0.0)
-        b2 = self.halo_radius2(s, aperture_radius)
+        b2 = self.halo_radius2(s, aperture_radius, dim)
         spread = b2 - aperture_radius**2
         cos_d = self.z_surface / np.sqrt(b2 + self.z_surface**2)  # halo edge seen from the array
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -232,7 +261,8 @@ class ScatteringLayer:
                 lateral = np.where(spread > 0, erf(aperture_radius / np.sqrt(np.maximum(spread, 1e-30))), 1.0)
                 reception = np.arccos(cos_d)
         t_r = 1.0 - self.reflection() ** 2
-        out = self.gain * reception * self.reflectance_density(s, orders_from) * v * pulse_energy * lateral * t_r**2
+        rho = self.reflectance_density(s, orders_from, dim)
+        out = self.gain * reception * rho * v * pulse_energy * lateral * t_r**2
         return np.where(np.asarray(tau) > 0, out, 0.0)
 
     def correlation_per_frame(self, tau: np.ndarray, c0: float, f_c: float) -> np.ndarray:
