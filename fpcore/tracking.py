@@ -322,8 +322,7 @@ class Tracker:
             node = self.grid.nearest_index(np.asarray(m.position_m, float))
             t = float(m.gamma) ** 2 / max(float(nm.power[node]), 1e-30)
             n = max(float(nm.train_cells[node]), 2.0)  # CA-CFAR law of a level from n cells (fpcore.cfar)
-            # capped at 300 (PFA e^-300): far above it the EC expansion underflows to 0 (and max_tail to 1)
-            s = min(n * np.log1p(t / n), 300.0)
+            s = n * np.log1p(t / n)
             p = min(1.0, nm.gate_pfa(s, radius_nodes) * max(int(m.n_states), 1))
             if best is None or p < best[1]:
                 best = (m, p)

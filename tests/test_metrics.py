@@ -32,6 +32,11 @@ def test_random_field_tail_limits() -> None:
     r1, r2 = resels_box(np.array([10.0, 10.0])), resels_box(np.array([40.0, 40.0]))
     assert max_tail(12.0, r1) < max_tail(12.0, r2)
     assert max_tail(14.0, r2) < max_tail(12.0, r2)
+    # Never rising with the threshold, up to where e^{-t} underflows (a PFA of 0, not 1).
+    r3 = resels_box(np.array([40.0, 40.0, 80.0]))
+    tails = [max_tail(t, r3) for t in np.linspace(0.0, 700.0, 1401)]
+    assert all(b <= a for a, b in zip(tails, tails[1:], strict=False))
+    assert max_tail(800.0, r3) == 0.0 and max_tail(1.0, r3) == 1.0
     # EC density of a χ²₂ field at d = 0 is the chi-square survival function.
     assert ec_density(10.0, 0) == pytest.approx(np.exp(-5.0), rel=1e-9)
 
