@@ -27,6 +27,7 @@ import numpy as np
 from fpcore import Acquisition, Fingerprint, Grid, Imager, ImagingConfig, NullLevel, budget, detect
 from fpcore.acquisition import PlaneWaveData
 from fpcore.cfar import NullModel
+from fpcore.imaging_gpu import make_imager as make_device_imager
 from fpcore.locate import null_of, resolution_of
 from fpcore.metrics import DEFAULT_MAX_PFA, Detection
 from fpcore.tracking import Tracker, TrackerConfig, TrackState
@@ -168,7 +169,8 @@ def make_imager(
 
         out_sines = output_sines(acq.probe, acq.c0, band[1], n=n_out)
     extra = {} if eps is None else {"eps": eps}
-    return Imager(ImagingConfig(grid, band, n_freq, out_sines, **extra))
+    # On a CUDA device (fp --device, FP_DEVICE) the whole frame's imaging runs there; else the host Imager.
+    return make_device_imager(ImagingConfig(grid, band, n_freq, out_sines, **extra))
 
 
 def check_grid_axes(

@@ -30,7 +30,8 @@ def _fp(alpha: float):
     return mirror_fingerprint(FREQS, OUT, IN, C0, 3e-3, alpha, r0=R)
 
 
-def test_kernel_choice_by_name_without_isinstance() -> None:
+def test_kernel_choice_by_name_without_isinstance(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("FP_DEVICE", "cpu")  # on a CUDA machine 'auto' would take the GPU kernel first
     cfg, pw = _setup()
     auto: Kernel = Imager(cfg).kernel(pw)
     assert type(auto) is PresumTransform  # the sines lie on one lattice
