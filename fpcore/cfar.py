@@ -21,11 +21,11 @@ for the maximum, Worsley et al. 1996):
    what remains is averaged over a training window of ± `window_cells` resolution cells around each
    node (± 6 lateral × ± 3 axial), censoring nodes that stand out (T > `censor` against a robust
    per-depth median) together with a guard region of one resolution cell: a censored cell-averaging
-   CFAR. The level is the greater of the window's mean and the means of its two halves along each
-   lateral axis (GO-CFAR, Hansen & Sawyers 1980), so that a level edge — the border of the insonified
-   region — is not averaged into its bright side (measured on the 2-D diffusion fog: target-free maps
-   with PFA < 0.05 fall from 11.5 % to 5.2 %, docs/design.md §4.9). Nodes outside `visible` neither
-   train nor are searched.
+   CFAR. Optionally (`greatest_of`, off by default) the level is the greater of the window's mean and
+   the means of its two halves along each lateral axis (GO-CFAR, Hansen & Sawyers 1980), so that a
+   level edge — the border of the insonified region — is not averaged into its bright side; it halves
+   the false alarms on the 2-D diffusion fog but loses targets whose own sidelobes fill one half
+   (docs/design.md §4.9). Nodes outside `visible` neither train nor are searched.
 2. **Statistic**: T(r) = γ²(r)/γ_M²(r), exponentially distributed (χ²₂/2) under the null. The level is
    estimated from n(r) independent training cells, counted per node (a node's own guard region,
    ± `own_guard` cells, not counted as missing), so the tail is the CA-CFAR law (1 + T/n)^(−n) = e^{−S},
@@ -303,7 +303,7 @@ def null_model(
     heavy_tails: bool = False,
     own_guard: float = 2.0,
     tail_fit: tuple[float, float] | None = (4.5, 11.0),
-    greatest_of: bool = True,
+    greatest_of: bool = False,
 ) -> NullModel:
     """Estimate the local null model of a γ-map (module doc, steps 1–3).
 
@@ -316,7 +316,7 @@ def null_model(
     leaves (default: none, γ² itself). visible: nodes where the fingerprint can be tested (the others
     neither train nor count as cells). heavy_tails: fit a local K law (step 2, off by default); tail_fit: the
     (u, U) range of the map's own tail fit (step 2b; None: the speckle law as is); greatest_of: the level
-    is the greater of the full window's and each lateral half's (step 1, GO-CFAR).
+    is the greater of the full window's and each lateral half's (step 1, GO-CFAR; off by default).
     """
     g2 = np.asarray(gamma, np.float64) ** 2
     if level is not None:
