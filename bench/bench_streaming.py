@@ -55,15 +55,19 @@ CASES: dict[str, dict[str, Any]] = {
 }
 
 
-def cached_frames(scenario: str, n: int, targets: list[str]) -> tuple[list[Acquisition], dict[str, Acquisition]]:
-    """n distinct frames and the targets' calibrations, generated once (quick scenario, seed 0)."""
+def cached_frames(
+    scenario: str, n: int, targets: list[str], quick: bool = True
+) -> tuple[list[Acquisition], dict[str, Acquisition]]:
+    """n distinct frames and the targets' calibrations, generated once (seed 0; ``quick=False``: the
+    scenario's full-size rig, cached with a ``-full`` suffix)."""
     CACHE.mkdir(parents=True, exist_ok=True)
-    frames_path = CACHE / f"{scenario}-{n}.uff"
-    cal_paths = {t: CACHE / f"{scenario}-cal-{t}.uff" for t in targets}
+    tag = scenario if quick else f"{scenario}-full"
+    frames_path = CACHE / f"{tag}-{n}.uff"
+    cal_paths = {t: CACHE / f"{tag}-cal-{t}.uff" for t in targets}
     if not frames_path.exists() or not all(p.exists() for p in cal_paths.values()):
         from fpcore import simulate
 
-        sc = simulate.scenario(scenario, quick=True, seed=0, n_frames=max(n, 2))
+        sc = simulate.scenario(scenario, quick=quick, seed=0, n_frames=max(n, 2))
         t = time.perf_counter()
         frames = [sc.frame(i) for i in range(n)]
         write_uff(frames_path, frames)
