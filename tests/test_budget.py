@@ -20,9 +20,10 @@ from fpcore import Acquisition, Grid, PlaneWaveSequence, Probe, budget, output_s
 from fpcore.budget import BudgetError
 from services import wire
 from services.bus import BusConfig, free_port, open_session, wait_for_token
+from services.imaging_setup import imaging_estimate
 from services.messages import ErrorReport, RFFrame
 from services.nodes.processor import Processor, ProcessorConfig
-from services.pipeline import Pipeline, PipelineConfig, imaging_estimate
+from services.pipeline import Pipeline, PipelineConfig
 from services.registry import FingerprintSpec
 from services.topics import keys
 

@@ -89,7 +89,7 @@ def run_characterise(args: argparse.Namespace) -> int:
     from fpcore import Grid, Imager, ImagingConfig
     from fpcore.dictionary import Dictionary, mirror_family
     from fpcore.io import read_uff
-    from services.pipeline import check_grid_axes, check_imaging_budget
+    from services.imaging_setup import check_grid_axes, check_imaging_budget
 
     console = make_console()
     alphas, lengths = _angles(args.angles), _lengths(args.lengths)

@@ -20,8 +20,9 @@ from fpcore.geometry import to_xyz
 from services.cli.fingerprint_args import add_fingerprint_arguments, fingerprint_spec, warn_r0
 from services.cli.imaging import add_imaging_arguments, grid_ranges
 from services.cli.output import make_console, progress
+from services.imaging_setup import make_imager
 from services.models import build_fingerprint
-from services.pipeline import make_imager, truth_error, truth_positions
+from services.pipeline import truth_error, truth_positions
 from services.units import parse_band
 
 __all__ = ["add_locate_parser", "run_locate"]
