@@ -63,20 +63,24 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=6, help="measured frames (default 6)")
     ap.add_argument("--warmup", type=int, default=1, help="warm-up frames left out (default 1)")
     ap.add_argument("--repeat", type=int, default=3, help="calls per stage in the split (median; default 3)")
+    ap.add_argument("--n-freq", type=int, help="frequencies kept in the band (default: every bin, as fp process)")
+    ap.add_argument("--no-image", action="store_true", help="no confocal image (fp process --no-image's choice)")
     ap.add_argument("--json", help="write the figures as JSON")
     args = ap.parse_args()
-    if args.frames < 1 or args.warmup < 0 or args.repeat < 1:
-        ap.error("--frames and --repeat: expected >= 1, --warmup >= 0")
+    if args.frames < 1 or args.warmup < 0 or args.repeat < 1 or (args.n_freq is not None and args.n_freq < 2):
+        ap.error("--frames and --repeat: expected >= 1, --warmup >= 0, --n-freq >= 2")
     t = time.perf_counter()
     frames, cals = cached_frames("sinking-sphere", 2, ["sphere1"], quick=False)
     a = frames[0]
     print(
         f"bench_full_frame: sinking-sphere full size, {a.probe.n_elements} elements × {a.sequence.n_waves} plane "
         f"waves × {a.n_samples} samples = {a.rf.nbytes / 1e6:.1f} MB (loaded in {time.perf_counter() - t:.1f} s); "
-        f"{os.cpu_count()} CPU(s), FP_THREADS={os.environ.get('FP_THREADS', 'all')}, load {os.getloadavg()[0]:.1f}",
+        f"n_freq {args.n_freq or 'all bins'}, image {not args.no_image}; {os.cpu_count()} CPU(s), "
+        f"FP_THREADS={os.environ.get('FP_THREADS', 'all')}, load {os.getloadavg()[0]:.1f}",
         flush=True,
     )
-    pipe = Pipeline(PipelineConfig(), [FingerprintSpec("sphere1", calibration=cals["sphere1"])])
+    cfg = PipelineConfig(n_freq=args.n_freq, publish_image=not args.no_image)
+    pipe = Pipeline(cfg, [FingerprintSpec("sphere1", calibration=cals["sphere1"])])
     t = time.perf_counter()
     pipe.warm_up()
     print(f"  set-up (imager, NUFFT plan, fingerprint) {time.perf_counter() - t:.1f} s; grid {pipe.grid.shape}")

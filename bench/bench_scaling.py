@@ -1,21 +1,26 @@
 """Scaling benchmark of sharded processing (issue 15.2; docs/scaling.md): throughput and publish → detection
 latency of one `fp process` node against `fp merge` + 1, 2, 4 `fp worker` processes, every node behind a
-zenoh router on loopback, on the same quick 3-D frames; detections and tracks compared with the single node's.
+zenoh router on loopback, on the same quick or full-size 3-D frames; detections and tracks compared with the
+single node's.
 
     python bench/bench_scaling.py                       # 1, 2, 4 workers, 24 measured frames each
+    python bench/bench_scaling.py --size full --frames 8 --warmup 1   # full-size frames (58.6 MB)
     python bench/bench_scaling.py --workers 1 2 --frames 12
     python bench/bench_scaling.py --shard fingerprint --workers 1 2   # both spheres' fingerprints, split
 
 Frames: the quick 3-D sinking-sphere scenario (cached by bench/bench_streaming.py under out/bench/cache),
-its grid (x −9…−1 mm, y ±4 mm, z 18–30 mm) and 40 frequencies; a few distinct frames are cycled with new
-indices and timestamps. The single node is `fp process --mode router`; a sharded run is
-`fp merge --mode router` with its workers as zenoh clients. The publisher (this process, a client) paces
-on acknowledgements with 2 frames in flight per worker. Each worker's kernel threads: FP_THREADS =
-max(1, CPUs // workers). The first (``--warmup`` + 2) × workers frames (each worker's first frames and the
-frames queued behind them) are left out of the figures; CPU time per frame is counted over the others.
-``--shard`` is the merger's (docs/scaling.md). ``--fingerprints 2`` gives every run (the single node's too)
-both spheres' calibrations, a dictionary to split: the default with ``--shard fingerprint`` and ``both``
-(``--group-size``); ``frame`` defaults to one (sphere1).
+its grid (x −9…−1 mm, y ±4 mm, z 18–30 mm) and 40 frequencies; ``--size full``: the scenario's full-size
+rig (32×32 elements × 25 plane waves × 572 samples, 58.6 MB a frame, cached the same way with a ``-full``
+suffix) on the processor's default grid (76×76×143) and every band bin, as `fp process` runs it without
+options. A few distinct frames are cycled with new indices and timestamps. The single node is
+`fp process --mode router`; a sharded run is `fp merge --mode router` with its workers as zenoh clients.
+The publisher (this process, a client) paces on acknowledgements with 2 frames in flight per worker.
+Each worker's kernel threads: FP_THREADS = max(1, CPUs // workers). The first (``--warmup`` + 2) ×
+workers frames (each worker's first frames and the frames queued behind them) are left out of the
+figures; CPU time per frame is counted over the others. ``--shard`` is the merger's (docs/scaling.md).
+``--fingerprints 2`` gives every run (the single node's too) both spheres' calibrations, a dictionary to
+split: the default with ``--shard fingerprint`` and ``both`` (``--group-size``); ``frame`` defaults to
+one (sphere1). It also prints what one frame costs outside the numerics (copy, wire encode/decode).
 """
 
 from __future__ import annotations
@@ -42,12 +47,14 @@ sys.path.insert(0, str(ROOT))
 from bench_streaming import CASES, cached_frames  # noqa: E402
 
 from services.bus import BusConfig, free_port, open_session  # noqa: E402
+from services.messages import RFFrame  # noqa: E402
 from services.nodes.publisher import Publisher  # noqa: E402
 from services.sources import AcquisitionSource  # noqa: E402
 from services.topics import keys  # noqa: E402
-from services.wire import decode  # noqa: E402
+from services.wire import decode, encode  # noqa: E402
 
-GRID = ["--x=-9mm:-1mm", "--y=-4mm:4mm", "--z=18mm:30mm", "--n-freq", "40"]
+#: the processor's grid options per --size: quick, the bench_streaming grid; full, the defaults (76×76×143, every bin)
+GRIDS = {"quick": ["--x=-9mm:-1mm", "--y=-4mm:4mm", "--z=18mm:30mm", "--n-freq", "40"], "full": []}
 
 
 class Proc:
@@ -65,7 +72,7 @@ class Proc:
                 env={**os.environ, **(env or {})},
             )
 
-    def wait_ready(self, timeout: float = 180.0) -> None:
+    def wait_ready(self, timeout: float = 900.0) -> None:  # full-size set-up: a minute or more per node
         out, deadline = self.p.stdout, time.monotonic() + timeout
         assert out is not None
         while time.monotonic() < deadline and self.p.poll() is None:
@@ -103,7 +110,7 @@ def run(
     # every worker's first frames, and the window of frames queued behind them
     warmup = (args.warmup + 2) * max(1, n_workers)
     total = warmup + args.frames
-    fp_args = ["--rig", rig, *[a for c in cals for a in ("--calibration", str(c))], *GRID]
+    fp_args = ["--rig", rig, *[a for c in cals for a in ("--calibration", str(c))], *GRIDS[args.size]]
     procs: list[Proc] = []
     head: Proc
     t0 = time.perf_counter()
@@ -130,8 +137,13 @@ def run(
         sent: dict[int, float] = {}
         got: dict[str, dict[int, Any]] = {"detections": {}, "tracks": {}}
         recv: dict[int, float] = {}
+        gammas: list[bytes] = []
         lock = threading.Lock()
         k = keys(rig)
+
+        def on_gamma(sample: Any) -> None:  # kept as bytes, decoded by compare() after the run
+            with lock:
+                gammas.append(sample.payload.to_bytes())
 
         def on(sample: Any) -> None:
             msg = decode(sample.payload.to_bytes())
@@ -148,7 +160,7 @@ def run(
         cpu0 = [float("nan")] * len(procs)
         own0 = [float("nan")]
         with open_session(BusConfig(mode="client", listen=None, connect=[hub], shm=args.shm)) as s:
-            subs = [s.declare_subscriber(k.detections, on), s.declare_subscriber(k.tracks, on)]
+            subs = [s.declare_subscriber(t, f) for t, f in ((k.detections, on), (k.tracks, on), (k.gamma, on_gamma))]
             pub = Publisher(
                 s,
                 rig,
@@ -184,6 +196,7 @@ def run(
         "startup_s": startup,
         "detections": got["detections"],
         "tracks": got["tracks"],
+        "gammas": gammas,
         "head_stats": stats[-1],
         # CPU ms per frame: the publisher (this process), the head node (processor or merger + router), workers
         "cpu_ms": {
@@ -192,7 +205,52 @@ def run(
             "workers": 1e3 * sum(cpu[:-1]) / len(meas),
         },
         "latency_ms": {i: round(1e3 * (recv[i] - sent[i]), 1) for i in meas},
+        "load": os.getloadavg()[0],  # 1-min load average at the end of the run (our processes included)
     }
+
+
+def frame_costs(acq: Any, repeat: int = 5) -> dict[str, float]:
+    """CPU ms (median of ``repeat``) of what each hop does to one frame outside the numerics: a plain copy
+    of its RF array, the FPWIRE01 encoding (header + one copy of the RF into the payload), the decoding
+    (validation; the RF is a view), and ``bytes()`` of the payload (what a Python receiver that copies does)."""
+
+    def med(fn: Any) -> float:
+        fn()
+        ts = []
+        for _ in range(repeat):
+            t = time.process_time()
+            fn()
+            ts.append(time.process_time() - t)
+        return float(np.median(ts)) * 1e3
+
+    msg = RFFrame.from_acquisition(acq)
+    payload = encode(msg)
+    return {
+        "mb": len(payload) / 1e6,
+        "copy_ms": med(lambda: acq.rf.copy()),
+        "encode_ms": med(lambda: encode(msg)),
+        "decode_ms": med(lambda: decode(payload)),
+        "bytes_ms": med(lambda: bytes(memoryview(payload))),
+    }
+
+
+def gamma_delta(ref: dict[str, Any], run_: dict[str, Any]) -> tuple[float, float, int, int]:
+    """(max |Δγ| over the frames both runs published, the same in uint16 codes of the reference's map
+    (``gamma_step``; nan for float32 maps), maps compared, detections in the reference): the γ-maps as
+    they travelled. Where the frames give no detection, the maps show that the runs computed the same."""
+
+    def maps(r: dict[str, Any]) -> dict[tuple[int, str], Any]:
+        return {(m.frame_index, m.fingerprint): m for m in (decode(b) for b in r["gammas"])}
+
+    a, b = maps(ref), maps(run_)
+    common = sorted(set(a) & set(b))
+    worst = max((float(np.max(np.abs(a[k].gamma - b[k].gamma))) for k in common), default=float("nan"))
+    codes = max(
+        (float(np.max(np.abs(a[k].gamma - b[k].gamma))) / (a[k].gamma_step or float("nan")) for k in common),
+        default=float("nan"),
+    )
+    n_det = sum(len(d.detections) for d in ref["detections"].values())
+    return worst, codes, len(common), n_det
 
 
 def compare(ref: dict[str, Any], run_: dict[str, Any]) -> tuple[bool, float]:
@@ -235,6 +293,9 @@ def main() -> int:
         help="dictionary entries: 1 (sphere1) or 2 (sphere1, sphere2); default 1 with --shard frame, else 2",
     )
     ap.add_argument("--group-size", type=int, default=2, help="fp merge --group-size for --shard both (default 2)")
+    ap.add_argument(
+        "--size", choices=("quick", "full"), default="quick", help="quick (9.2 MB) or full-size (58.6 MB) frames"
+    )
     ap.add_argument("--json", help="write the table as JSON")
     args = ap.parse_args()
     if args.warmup < 1:
@@ -242,15 +303,24 @@ def main() -> int:
     case = CASES["3d"]
     n_fp = args.fingerprints or (1 if args.shard == "frame" else 2)
     targets = ["sphere1", "sphere2"][:n_fp]
-    frames, _ = cached_frames(case["scenario"], args.distinct, targets)
-    cals = [Path("out/bench/cache") / f"{case['scenario']}-cal-{t}.uff" for t in targets]
+    quick = args.size == "quick"
+    frames, _ = cached_frames(case["scenario"], args.distinct, targets, quick=quick)
+    tag = case["scenario"] if quick else f"{case['scenario']}-full"
+    cals = [Path("out/bench/cache") / f"{tag}-cal-{t}.uff" for t in targets]
     a = frames[0]
     cpus = os.cpu_count()
     print(
-        f"quick 3-D {case['scenario']}: {a.probe.n_elements} elements × {a.sequence.n_waves} plane waves × "
-        f"{a.n_samples} samples = {a.rf.nbytes / 1e6:.1f} MB/frame; {args.warmup} warm-up + {args.frames} frames "
-        f"per run; fingerprints {targets}, --shard {args.shard}; {cpus} CPU(s), load average "
-        f"{os.getloadavg()[0]:.1f} at start (shared machine)",
+        f"{'quick' if quick else 'full-size'} 3-D {case['scenario']}: {a.probe.n_elements} elements × "
+        f"{a.sequence.n_waves} plane waves × {a.n_samples} samples = {a.rf.nbytes / 1e6:.1f} MB/frame; "
+        f"{args.warmup} warm-up + {args.frames} frames per run; fingerprints {targets}, --shard {args.shard}; "
+        f"{cpus} CPU(s), load average {os.getloadavg()[0]:.1f} at start (shared machine)",
+        flush=True,
+    )
+    fc = frame_costs(a)
+    print(
+        f"per frame, outside the numerics (CPU ms, median of 5): RF copy {fc['copy_ms']:.1f}, wire encode "
+        f"{fc['encode_ms']:.1f}, decode {fc['decode_ms']:.2f}, bytes() of the {fc['mb']:.1f} MB payload "
+        f"{fc['bytes_ms']:.1f}; load {os.getloadavg()[0]:.1f}",
         flush=True,
     )
     rows = []
@@ -264,28 +334,37 @@ def main() -> int:
             merger = {k: r["head_stats"].get(k) for k in ("per_worker", "reassigned", "duplicates")} if n else {}
             print(
                 f"  {label}: {r['rate_hz']:.2f} frames/s, p50 {r['p50_ms']:.0f} ms, p95 {r['p95_ms']:.0f} ms, "
-                f"start-up {r['startup_s']:.0f} s, CPU ms/frame {json.dumps(r['cpu_ms'])} {json.dumps(merger)}",
+                f"start-up {r['startup_s']:.0f} s, load {r['load']:.1f}, CPU ms/frame {json.dumps(r['cpu_ms'])} "
+                f"{json.dumps(merger)}",
                 flush=True,
             )
     ref = rows[0]
     print(
         "\n| run | frames/s | × single node | p50 ms | p95 ms | CPU ms/frame: publisher, processor or merger, "
-        "workers | cores used | detections & tracks = single node |"
+        "workers | cores used | load | detections & tracks = single node | γ-maps: max |Δγ| (maps) |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     table = []
     for r in rows:
         same, worst = compare(ref, r) if r is not ref else (True, 0.0)
         ratio = r["rate_hz"] / ref["rate_hz"]
+        dg, dcodes, n_maps, n_det = gamma_delta(ref, r)
         cell = "reference" if r is ref else ("yes" if same else "NO") + f" (max Δ {worst * 1e9:.1f} nm)"
+        cell += f"; {n_det} detections" if r is ref else ""
+        gcell = "reference" if r is ref else f"{dg:.1e} = {dcodes:.1f} code ({n_maps})"
         c = r["cpu_ms"]
         cores = r["rate_hz"] * (c["publisher"] + c["head"] + c["workers"]) / 1e3  # CPU s per s: the cores we got
         print(
             f"| {r['label']} | {r['rate_hz']:.1f} | {ratio:.2f} | {r['p50_ms']:.0f} | {r['p95_ms']:.0f} | "
-            f"{c['publisher']:.0f}, {c['head']:.0f}, {c['workers']:.0f} | {cores:.2f} | {cell} |"
+            f"{c['publisher']:.0f}, {c['head']:.0f}, {c['workers']:.0f} | {cores:.2f} | {r['load']:.1f} | {cell} | "
+            f"{gcell} |"
         )
-        keep = ("label", "workers", "window", "frames", "rate_hz", "p50_ms", "p95_ms", "cpu_ms", "latency_ms")
-        table.append({k: r[k] for k in keep} | {"ratio": ratio, "cores": cores, "same": same, "max_delta_m": worst})
+        keep = ("label", "workers", "window", "frames", "rate_hz", "p50_ms", "p95_ms", "cpu_ms", "latency_ms", "load")
+        table.append(
+            {k: r[k] for k in keep}
+            | {"ratio": ratio, "cores": cores, "same": same, "max_delta_m": worst}
+            | {"max_delta_gamma": dg, "max_delta_codes": dcodes, "maps_compared": n_maps, "ref_detections": n_det}
+        )
     print(
         f"\nMachine: {cpus} CPU(s), shared with other jobs (load average {os.getloadavg()[0]:.1f} at the end). "
         "'cores used' = frames/s × the CPU time per frame of all our processes: what the run got of the machine. "
@@ -296,7 +375,7 @@ def main() -> int:
         "Little's law)."
     )
     if args.json:
-        Path(args.json).write_text(json.dumps(table, indent=1))
+        Path(args.json).write_text(json.dumps({"size": args.size, "frame_costs": fc, "runs": table}, indent=1))
     return 0
 
 
