@@ -36,7 +36,8 @@ from .acquisition import Acquisition, PlaneWaveData, Spectrum, to_plane_waves
 from .fingerprint import Fingerprint
 from .geometry import from_xyz
 from .grid import Grid
-from .kernel import GridTransform, wavevectors
+from .kernel import GridTransform, Kernel, wavevectors
+from .kernel_presum import PresumTransform
 from .likelihood import Imager
 
 __all__ = ["envelope_spectrum", "NullPower", "NullLevel"]
@@ -64,7 +65,7 @@ class NullPower:
     def __init__(self, grid: Grid, eps: float = 1e-4, cache: int = 4) -> None:
         self.grid = grid
         self.eps = eps
-        self._kernels: OrderedDict[tuple, GridTransform] = OrderedDict()
+        self._kernels: OrderedDict[tuple, Kernel] = OrderedDict()
         self._fingerprints: OrderedDict[tuple, np.ndarray] = OrderedDict()  # Ê_F e^{−iK·r0} per fingerprint
         self._data: tuple[tuple, np.ndarray] | None = None  # Ê_R of the last frame (one per frame, any fp)
         self._cache = cache
@@ -80,7 +81,7 @@ class NullPower:
         d = np.diff(f)
         return bool(d.min() > 0 and d.std() <= 0.25 * d.mean())
 
-    def _kernel(self, pw: PlaneWaveData) -> tuple[GridTransform, np.ndarray]:
+    def _kernel(self, pw: PlaneWaveData) -> tuple[Kernel, np.ndarray]:
         freqs = np.asarray(pw.freqs, float)
         if not self.uniform(freqs):
             raise ValueError("freqs: the null level needs uniformly spaced frequencies")
@@ -89,8 +90,14 @@ class NullPower:
         key = (freqs.size, df, pw.out_sines.tobytes(), pw.in_sines.tobytes(), float(pw.c0))
         kern = self._kernels.get(key)
         if kern is None:
-            K = wavevectors(nu, pw.out_sines, pw.in_sines, pw.c0, self.grid.ndim)
-            kern = GridTransform(K, self.grid, eps=self.eps)
+            # The same sum as γ's numerator at baseband (module doc): the lattice pre-sum kernel when the
+            # sines lie on one lattice (docs/design.md §5; ≈ 7× faster than finufft on a 76×76×143 grid,
+            # equal to it within the tolerance), else finufft's type 1.
+            if PresumTransform.applicable(pw.out_sines, pw.in_sines, self.grid.ndim):
+                kern = PresumTransform(nu, pw.out_sines, pw.in_sines, pw.c0, self.grid, eps=self.eps)
+            else:
+                K = wavevectors(nu, pw.out_sines, pw.in_sines, pw.c0, self.grid.ndim)
+                kern = GridTransform(K, self.grid, eps=self.eps)
             self._kernels[key] = kern
             while len(self._kernels) > self._cache:
                 self._kernels.popitem(last=False)
