@@ -52,11 +52,12 @@ def envelope_spectrum(data: np.ndarray) -> np.ndarray:
     """
     n_f = data.shape[0]
     n_t = 2 * n_f
-    flat = np.ascontiguousarray(np.asarray(data).reshape(n_f, -1).T)  # FFT along the last, contiguous axis
-    a = sfft.ifft(flat, n=n_t, axis=1, workers=-1)
-    e = (a.real**2 + a.imag**2) * n_t  # scale: Σ_t |a|² = Σ_f |R_f|² (Parseval)
-    spec = sfft.rfft(e, axis=1, workers=-1)[:, :n_f]  # |a|² is real: ν ≥ 0 is all there is
-    return np.ascontiguousarray(spec.T).reshape(data.shape).astype(np.complex64)
+    flat = np.asarray(data).reshape(n_f, -1)  # transforms along the first axis: no transposed copies
+    a = sfft.ifft(flat, n=n_t, axis=0, workers=-1)
+    e = a.real**2 + a.imag**2
+    e *= n_t  # scale: Σ_t |a|² = Σ_f |R_f|² (Parseval)
+    spec = sfft.rfft(e, axis=0, workers=-1)[:n_f]  # |a|² is real: ν ≥ 0 is all there is
+    return spec.reshape(data.shape).astype(np.complex64, copy=False)
 
 
 class NullPower:
