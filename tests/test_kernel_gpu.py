@@ -11,30 +11,15 @@ import numpy as np
 import pytest
 
 import fpcore.kernel_gpu as kg
-from fpcore import Grid, GridTransform, Imager, ImagingConfig, PlaneWaveSequence, Probe, direct_sum, wavevectors
+from fpcore import Grid, GridTransform, Imager, ImagingConfig, PlaneWaveSequence, Probe, direct_sum
 from fpcore.born import born_points
 from fpcore.fingerprint import point_fingerprint
 from fpcore.imaging_gpu import DeviceImager, DevicePlaneWaveData, make_imager
 from fpcore.kernel_gpu import GpuTransform, cuda_problem, emulated_backend
 from fpcore.likelihood import KERNELS, make_kernel
+from tests.test_kernel import _geometry  # the kernel tests' speckle geometry, shared
 
 needs_cuda = pytest.mark.skipif(cuda_problem() is not None, reason=f"GPU backend not usable here: {cuda_problem()}")
-
-
-def _geometry(ndim: int, rng: np.random.Generator):
-    freqs = np.linspace(2.0e6, 3.0e6, 9)
-    if ndim == 2:
-        so = np.stack([np.linspace(-0.6, 0.6, 17), np.zeros(17)], axis=1)
-        si = np.stack([np.linspace(-0.2, 0.2, 5), np.zeros(5)], axis=1)
-        grid = Grid.centred((0.4e-3, 20e-3), (40, 33), 1.5e-4)
-    else:
-        sx = np.linspace(-0.4, 0.4, 6)
-        so = np.stack([a.ravel() for a in np.meshgrid(sx, sx, indexing="xy")], axis=1)
-        si = np.array([[0.0, 0.0], [0.1, -0.05], [-0.1, 0.05]])
-        grid = Grid.centred((0.2e-3, -0.1e-3, 20e-3), (14, 11, 16), 2.0e-4)
-    K = wavevectors(freqs, so, si, 1500.0, ndim)
-    w = (rng.standard_normal(K.shape[0]) + 1j * rng.standard_normal(K.shape[0])).astype(np.complex64)
-    return K, grid, w
 
 
 @pytest.mark.parametrize("ndim", [2, 3])
