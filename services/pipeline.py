@@ -26,6 +26,7 @@ import numpy as np
 
 from fpcore import Acquisition, Fingerprint, Grid, Imager, NullLevel, detect
 from fpcore.acquisition import PlaneWaveData
+from fpcore.background import NullPower
 from fpcore.cfar import NullModel
 from fpcore.locate import null_of, resolution_of
 from fpcore.metrics import DEFAULT_MAX_PFA, Detection
@@ -423,6 +424,14 @@ class Pipeline:
                     dets.append((d, truth_error(np.asarray(d.position_m, float), truths, name)))
             tv = time.perf_counter()
             velocities, motion, notices = self._velocities(acq, pw, grid, dets)
+            if self._level is not None and gammas and not NullPower.uniform(pw.freqs) and "bins" not in self._noticed:
+                self._noticed.add("bins")  # a set-up warning in the node's log, once; not a frame error
+                log.warning(
+                    "n_freq: the %d frequencies kept are unevenly spaced bins, so the physical null level "
+                    "(docs/design.md §4.9) is skipped and the CFAR alone sets the level; keep every bin (no n_freq) "
+                    "or choose n_freq so that the band's bins divide evenly",
+                    pw.freqs.size,
+                )
             tv = time.perf_counter() - tv
             tracks = (
                 self._tracker.update(gammas, acq.timestamp, nulls=nulls, motion=motion)
