@@ -213,6 +213,15 @@ class _FFTCorrelator:
     family: ModelFamily
     shape_ext: tuple[int, ...]
     k_samples3: np.ndarray
+    norms: np.ndarray | None = None  # ‖F_q‖ over the samples per state: frame-independent, made once
+
+    def state_norms(self) -> np.ndarray:
+        """‖F_q‖ = (Σ_j |F_q(K_j)|²)^½ of every state over the acquisition's samples (eq. P's denominator)."""
+        if self.norms is None:
+            n = len(self.family.states)
+            resp = self.family.responses(self.k_samples3, list(range(n)), {})
+            self.norms = np.array([float(np.sqrt(np.vdot(f, f).real)) for f in resp])
+        return self.norms
 
     @classmethod
     def build(cls, pw: PlaneWaveData, grid: Grid, eps: float, family: ModelFamily) -> _FFTCorrelator | None:
@@ -260,18 +269,15 @@ class _FFTCorrelator:
         spec = sfft.fftn(field_ext, axes=axes, workers=default_threads()).astype(np.complex64)
         spec *= self.taper
         n = len(self.family.states)
+        norms = self.state_norms()
         cache_grid: dict = {}
-        cache_samples: dict = {}
         for a in range(0, n, batch):
             idx = list(range(a, min(a + batch, n)))
             stack = np.empty((len(idx),) + self.shape_ext, np.complex64)
-            norms = []
             on_grid = self.family.responses(self.K3_of_kappa, idx, cache_grid)
-            on_samples = self.family.responses(self.k_samples3, idx, cache_samples)
-            for j, (resp, f) in enumerate(zip(on_grid, on_samples, strict=True)):
+            for j, resp in enumerate(on_grid):
                 np.multiply(spec, np.conj(resp).reshape(self.shape_ext), out=stack[j])
-                norms.append(float(np.sqrt(np.vdot(f, f).real)))
             out = sfft.ifftn(stack, axes=tuple(range(1, stack.ndim)), workers=default_threads(), overwrite_x=True)
             for j, q in enumerate(idx):
                 m = np.abs(out[(j,) + self.crop])
-                yield q, (m / np.float32(max(norms[j], 1e-300) * max(r_norm, 1e-300))).astype(np.float32)
+                yield q, (m / np.float32(max(norms[q], 1e-300) * max(r_norm, 1e-300))).astype(np.float32)
