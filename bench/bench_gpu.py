@@ -25,8 +25,10 @@ CPU times, not GPU figures.
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -36,6 +38,9 @@ from fpcore.born import born_points
 from fpcore.fingerprint import point_fingerprint
 from fpcore.imaging_gpu import DeviceImager, DevicePlaneWaveData
 from fpcore.kernel_gpu import Backend, cuda_backend, cuda_problem, emulated_backend
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_kernel import geometry_3d  # noqa: E402  (the kernel bench's 3-D size, one definition)
 
 BAND = (1.8e6, 2.6e6)
 C0, FC = 1500.0, 2.2e6
@@ -55,19 +60,12 @@ def timed(fn: Callable[[], Any], repeat: int, backend: Backend) -> float:
 
 
 def kernel_volume() -> tuple[PlaneWaveData, Grid]:
-    """bench/bench_kernel.py's 3-D size: Nf = 40, 32×32 output and 11×11 transmit sines, 64³ at λ_min/4."""
-    ds = 0.04
-    freqs = np.linspace(*BAND, 40)
-    n = np.arange(-16, 16) * ds
-    yy, xx = np.meshgrid(n, n, indexing="ij")
-    so = np.stack([xx.ravel(), yy.ravel()], axis=1)
-    m = np.arange(-5, 6) * ds
-    yy, xx = np.meshgrid(m, m, indexing="ij")
-    si = np.stack([xx.ravel(), yy.ravel()], axis=1)
+    """bench/bench_kernel.py's 3-D size (its `geometry_3d`) with speckle-like data."""
+    freqs, so, si, c0, grid = geometry_3d()
     rng = np.random.default_rng(0)
     shape = (freqs.size, so.shape[0], si.shape[0])
     R = (rng.standard_normal(shape) + 1j * rng.standard_normal(shape)).astype(np.complex64)  # speckle-like
-    return PlaneWaveData(R, freqs, so, si, C0), Grid.centred((0.0, 0.0, 25e-3), (64, 64, 64), C0 / BAND[1] / 4)
+    return PlaneWaveData(R, freqs, so, si, c0), grid
 
 
 def frame(quick: bool):

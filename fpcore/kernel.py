@@ -32,7 +32,7 @@ import numpy as np
 from .geometry import cosines, from_xyz
 from .grid import Grid
 
-__all__ = ["wavevectors", "direct_sum", "GridTransform", "Kernel", "KernelType", "default_threads"]
+__all__ = ["wavevectors", "direct_sum", "GridTransform", "Kernel", "KernelType", "default_threads", "type1_geometry"]
 
 
 class Kernel(Protocol):
@@ -100,6 +100,17 @@ def direct_sum(weights: np.ndarray, K: np.ndarray, points: np.ndarray, chunk: in
     return out
 
 
+def type1_geometry(K: np.ndarray, grid: Grid, complex_dtype: type) -> tuple[np.ndarray, list[np.ndarray]]:
+    """(ramp, points) of the type-1 NUFFT of `GridTransform` (module doc): the strength ramp e^{iK·r_c},
+    r_c the grid's node N//2 where the index-0 mode sits (finufft/cufinufft modeord 0), and the points
+    K_j Δ folded into [−π, π) per axis (exact on integer node offsets)."""
+    spacing = np.asarray(grid.spacing)
+    centre = grid.from_xyz(grid.centre_index_point())
+    ramp = np.exp(1j * (K @ centre)).astype(complex_dtype)
+    pts = [np.mod(K[:, d] * spacing[d] + np.pi, 2 * np.pi) - np.pi for d in range(grid.ndim)]
+    return ramp, pts
+
+
 class GridTransform:
     """B(r) = Σ_j w_j e^{iK_j·r} on a regular grid by a type-1 NUFFT (finufft), plan reused.
 
@@ -126,11 +137,7 @@ class GridTransform:
         self.n_trans = n_trans
         self.complex_dtype = np.complex64 if precision == "single" else np.complex128
         real_dtype = np.float32 if precision == "single" else np.float64
-        spacing = np.asarray(grid.spacing)
-        centre = grid.from_xyz(grid.centre_index_point())
-        # Strength ramp e^{iK·r_c}: the grid's index-0 mode sits on the node N//2 (finufft modeord 0).
-        self.ramp = np.exp(1j * (K @ centre)).astype(self.complex_dtype)
-        pts = [np.mod(K[:, d] * spacing[d] + np.pi, 2 * np.pi) - np.pi for d in range(grid.ndim)]
+        self.ramp, pts = type1_geometry(K, grid, self.complex_dtype)
         self._plan = finufft.Plan(
             1,
             grid.shape,

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from .grid import Grid
-from .kernel import default_threads, wavevectors
+from .kernel import default_threads, type1_geometry, wavevectors
 
 __all__ = [
     "Backend",
@@ -209,11 +209,8 @@ class GpuTransform:
         self.n_trans = n_trans
         self.complex_dtype = np.complex64 if precision == "single" else np.complex128
         real_dtype = np.float32 if precision == "single" else np.float64
-        spacing = np.asarray(grid.spacing)
-        centre = grid.from_xyz(grid.centre_index_point())
-        self.ramp = np.exp(1j * (K @ centre)).astype(self.complex_dtype)  # e^{iK·r_c} (GridTransform)
+        self.ramp, pts = type1_geometry(K, grid, self.complex_dtype)  # GridTransform's conventions
         self._ramp = xp.asarray(self.ramp)
-        pts = [np.mod(K[:, d] * spacing[d] + np.pi, 2 * np.pi) - np.pi for d in range(grid.ndim)]
         self._pts = [xp.asarray(p.astype(real_dtype)) for p in pts]  # kept alive for the plan
         self._plan = self.backend.make_plan(grid.shape, n_trans, eps, np.dtype(self.complex_dtype).name)
         self._plan.setpts(*self._pts)
