@@ -29,6 +29,7 @@ import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from types import ModuleType
+from typing import Any
 
 import numpy as np
 
@@ -67,7 +68,7 @@ def _fallback_cache_dir() -> str | None:
     return path
 
 
-def _jit(fn: Callable[..., None]) -> Callable[..., None]:
+def _jit(fn: Callable[..., Any]) -> Callable[..., Any]:
     """numba.njit(fastmath, nogil, cached on disk; see the module doc for where)."""
     assert nb is not None
     try:
@@ -86,21 +87,25 @@ def _jit(fn: Callable[..., None]) -> Callable[..., None]:
 if nb is not None:
 
     @_jit
-    def spread_depth(w, P, Q, ua, ub, go, gi, gbase, glen, tab, dtab, G, f0, fstep):  # pragma: no cover
-        """Depth spreading of the samples j = (f, o, i), f = f0, f0 + fstep, …:
-        G[f, g(o, i), re/im, l] += w_j P_fo Q_fi φ(u_j − l).
+    def spread_freq(w, P, Q, ua, ub, go, gi, L, tab, dtab, G, b0, bstride, f, occ):  # pragma: no cover
+        """Depth spreading of frequency f's samples j = (f, o, i) for each weight vector b:
+        G[b0 + b·bstride + g(o, i)·2L + (re/im)·L + l] += w_bj P_fo Q_fi φ(u_j − l).
 
-        w (Nf, No, Ni, 2), P (Nf, No, 2), Q (Nf, Ni, 2): re/im pairs; g = go[o] + gi[i], the lattice group
-        (m_y·M_x + m_x). u = ua[f, o] + ub[f, i] ≥ 0, fixed point with FRAC fractional bits: position from
-        the band's first bin, ⌊u⌋ the first of the 8 taps. Per (f, o), a vectorizable pass over i makes
-        the strengths and positions, then each sample adds its 8 taps."""
-        nf, no, ni, _ = w.shape
+        w (Nb, Nf, No, Ni, 2), P (Nf, No, 2), Q (Nf, Ni, 2): re/im pairs; g = go[o] + gi[i], the lattice
+        group (m_y·M_x + m_x). u = ua[f, o] + ub[f, i] ≥ 0, fixed point with FRAC fractional bits: position
+        from the band's first bin, ⌊u⌋ the first of the 8 taps. Per (f, o), vectorizable passes over i make
+        the ramp, the positions (shared by the Nb weight vectors) and the strengths; each sample adds 8 taps.
+        Zero weights (outside a fingerprint's angular support) are skipped; occ[b, g] = 1 marks the groups
+        that received a non-zero one (occ: (Nb, M_x·M_y) uint8, not cleared here)."""
+        nb, _, no, ni, _ = w.shape
         ntap = tab.shape[1]
         tabf = tab.ravel()
         dtabf = dtab.ravel()
         shift = FRAC - TAB_BITS
         fmask = (1 << shift) - 1
         fscale = np.float32(1.0 / (1 << shift))
+        er = np.empty(ni, np.float32)
+        ei = np.empty(ni, np.float32)
         cre = np.empty(ni, np.float32)
         cim = np.empty(ni, np.float32)
         rr = np.empty(ni, np.float32)
@@ -108,41 +113,52 @@ if nb is not None:
         off = np.empty(ni, np.int64)
         qr = np.empty(ni, np.float32)
         qi = np.empty(ni, np.float32)
-        for f in range(f0, nf, fstep):
-            L = glen[f]
-            b0 = u64(gbase[f])
-            G[b0 : u64(gbase[f + 1])] = 0
-            qr[:] = Q[f, :, 0]
-            qi[:] = Q[f, :, 1]
-            for o in range(no):
-                pr = P[f, o, 0]
-                pi = P[f, o, 1]
-                a = ua[f, o]
-                wo = w[f, o]
+        qr[:] = Q[f, :, 0]
+        qi[:] = Q[f, :, 1]
+        uL = u64(L)
+        for o in range(no):
+            pr = P[f, o, 0]
+            pi = P[f, o, 1]
+            a = ua[f, o]
+            for i in range(ni):
+                er[i] = pr * qr[i] - pi * qi[i]
+                ei[i] = pr * qi[i] + pi * qr[i]
+            for i in range(ni):
+                u = a + ub[f, i]
+                kb[i] = ((u >> shift) & (N_TABLE - 1)) * ntap
+                rr[i] = np.float32(np.int32(u & fmask)) * fscale
+                off[i] = (go[o] + gi[i]) * (L + L) + (u >> FRAC)
+            for b in range(nb):
+                wo = w[b, f, o]
                 for i in range(ni):
-                    er = pr * qr[i] - pi * qi[i]
-                    ei = pr * qi[i] + pi * qr[i]
                     xr = np.float32(wo[i, 0])
                     xi = np.float32(wo[i, 1])
-                    cre[i] = xr * er - xi * ei
-                    cim[i] = xr * ei + xi * er
+                    cre[i] = xr * er[i] - xi * ei[i]
+                    cim[i] = xr * ei[i] + xi * er[i]
+                bb = u64(b0) + u64(b) * u64(bstride)
                 for i in range(ni):
-                    u = a + ub[f, i]
-                    kb[i] = ((u >> shift) & (N_TABLE - 1)) * ntap
-                    rr[i] = np.float32(np.int32(u & fmask)) * fscale
-                    off[i] = (go[o] + gi[i]) * (L + L) + (u >> FRAC)
-                uL = u64(L)
-                for i in range(ni):
+                    if wo[i, 0] == 0 and wo[i, 1] == 0:
+                        continue
+                    occ[b, go[o] + gi[i]] = 1
                     cr = cre[i]
                     ci = cim[i]
                     r = rr[i]
                     k0 = u64(kb[i])
-                    dst = b0 + u64(off[i])
+                    dst = bb + u64(off[i])
                     dim = dst + uL
                     for t in range(u64(ntap)):
                         v = tabf[k0 + t] + r * dtabf[k0 + t]
                         G[dst + t] += cr * v
                         G[dim + t] += ci * v
+
+    @_jit
+    def spread_depth(w, P, Q, ua, ub, go, gi, gbase, glen, tab, dtab, G, f0, fstep):  # pragma: no cover
+        """`spread_freq` of one weight vector w (1, Nf, No, Ni, 2) for f = f0, f0 + fstep, … into the
+        frequency blocks G[gbase[f]:gbase[f + 1]] (zeroed first)."""
+        occ = np.zeros((1, (go.max() + gi.max() + 1)), np.uint8)
+        for f in range(f0, w.shape[1], fstep):
+            G[u64(gbase[f]) : u64(gbase[f + 1])] = 0
+            spread_freq(w, P, Q, ua, ub, go, gi, glen[f], tab, dtab, G, gbase[f], 0, f, occ)
 
     @_jit
     def spread_lateral(G, gbase, glen, lstart, ux, uy, tab, dtab, W, f0, fstep):  # pragma: no cover
@@ -274,18 +290,192 @@ if nb is not None:
                             Hf[dst + nglob + lg] += acc[u + L + t] + sv * acc[n + u + t]
 
     @_jit
-    def lateral_exact(G, gbase, glen, lstart, Cx, Sx, Cy, Sy, nx, ny, T, acc, H, f0, fstep):  # pragma: no cover
-        """Exact lateral DFTs of the frequencies f0, f0 + fstep, … accumulated into H."""
-        nf, qx, mx = Cx.shape
-        qy, my = Cy.shape[1], Cy.shape[2]
-        for f in range(f0, nf, fstep):
-            L = u64(glen[f])
-            b0 = u64(gbase[f])
-            if ny == 1 and my == 1:  # 2D: the block is already (m_x, 1, re/im, l)
-                lat_x(G[b0:], L, Cx[f], Sx[f], nx, ny, 0, qx, H, u64(lstart[f]), acc)
-            else:
-                lat_y(G, b0, L, mx, Cy[f], Sy[f], ny, 0, qy, T, acc)
-                lat_x(T, L, Cx[f], Sx[f], nx, ny, 0, qx, H, u64(lstart[f]), acc)
+    def butterfly(G, M, n, j0, j1):  # pragma: no cover
+        """Rows j ∈ [j0, min(j1, M//2)) of G (M rows of n) become G_j + G_{M−1−j}, rows M−1−j become
+        G_j − G_{M−1−j}."""
+        for j in range(j0, min(j1, M // 2)):
+            a = u64(j) * u64(n)
+            b = u64(M - 1 - j) * u64(n)
+            for t in range(u64(n)):
+                x = G[a + t]
+                y = G[b + t]
+                G[a + t] = x + y
+                G[b + t] = x - y
+
+    @_jit
+    def pair_span(occ, mx, M, axis, a0, a1):  # pragma: no cover
+        """[lo, hi): the pairs (j, M−1−j) of lattice rows holding data. axis 0: rows m_y, any group of the
+        columns m_x ∈ [a0, a1); axis 1: rows m_x, any group. occ (M_y·M_x) marks the occupied groups."""
+        lo, hi = M, 0
+        my = occ.size // mx
+        for j in range(M):
+            jp = min(j, M - 1 - j)
+            if lo <= jp < hi:
+                continue
+            for a in range(a0, a1) if axis == 0 else range(my):
+                if occ[j * mx + a if axis == 0 else a * mx + j]:
+                    lo = min(lo, jp)
+                    hi = max(hi, jp + 1)
+                    break
+        return lo, max(lo, hi)
+
+    @_jit
+    def accumulate_tile(G, c0, width, n, r_first, r_step, m0, nrows, coef, q0, acc):  # pragma: no cover
+        """acc[k, :width] = Σ_{m0≤m<nrows} coef[q0 + k, m] G[row_m·n + c0 : … + width] for k < 4 (rows of coef past
+        its end give 0), row_m = r_first + r_step·m: four outputs from each row loaded, four rows at a time
+        (16 FMAs per 4 loads; the accumulators of a column block stay in L1)."""
+        nq = coef.shape[0]
+        uw = u64(width)
+        a0, a1, a2, a3 = acc[0], acc[1], acc[2], acc[3]
+        a0[:width] = 0
+        a1[:width] = 0
+        a2[:width] = 0
+        a3[:width] = 0
+        for m in range(m0, nrows, 4):
+            cf = np.zeros((4, 4), np.float32)
+            r = [u64(0)] * 4
+            for s in range(4):
+                r[s] = u64(r_first + r_step * min(m + s, nrows - 1)) * u64(n) + u64(c0)
+                if m + s < nrows:
+                    for k in range(4):
+                        if q0 + k < nq:
+                            cf[k, s] = coef[q0 + k, m + s]
+            r0, r1, r2, r3 = r[0], r[1], r[2], r[3]
+            c00, c01, c02, c03 = cf[0, 0], cf[0, 1], cf[0, 2], cf[0, 3]
+            c10, c11, c12, c13 = cf[1, 0], cf[1, 1], cf[1, 2], cf[1, 3]
+            c20, c21, c22, c23 = cf[2, 0], cf[2, 1], cf[2, 2], cf[2, 3]
+            c30, c31, c32, c33 = cf[3, 0], cf[3, 1], cf[3, 2], cf[3, 3]
+            for t in range(uw):
+                g0 = G[r0 + t]
+                g1 = G[r1 + t]
+                g2 = G[r2 + t]
+                g3 = G[r3 + t]
+                a0[t] += c00 * g0 + c01 * g1 + c02 * g2 + c03 * g3
+                a1[t] += c10 * g0 + c11 * g1 + c12 * g2 + c13 * g3
+                a2[t] += c20 * g0 + c21 * g1 + c22 * g2 + c23 * g3
+                a3[t] += c30 * g0 + c31 * g1 + c32 * g2 + c33 * g3
+
+    @_jit
+    def lateral_sym(G, L, mx, my, nx, ny, Cy, Sy, Ey, Cx, Sx, Ex, T, accC, accS, H, ls, blk, occ):  # pragma: no cover
+        """Exact lateral DFTs of one frequency's rows G[(m_y, m_x), re/im, l] accumulated into H[x, y, re/im,
+        ls + l (mod nglob)]: Σ_m e^{iθ_m p} G_m = e^{iθ_c p} Σ_m e^{iθ'_m p} G_m with θ' = θ − θ_c symmetric
+        about the lattice's centre θ_c, so the pairs m, M−1−m share cos(θ'q) and sin(θ'q) up to sign (a
+        butterfly, then half the products); p = ±q even/odd as before. C (Q, (M+1)//2) = cos θ'q,
+        S (Q, M//2) = sin θ'q, E (Q, 2) = (cos, sin) θ_c q. Columns in blocks of ~blk floats (kept in L2), four q
+        at a time (`accumulate_tile`; accC, accS (4, ≥ blk)). Only the pairs that hold data are summed: occ
+        (M_y·M_x) marks the occupied groups (a fingerprint's angular support leaves most of them empty).
+        G and T are overwritten."""
+        L2 = L + L
+        uL = u64(L)
+        nglob = u64(H.shape[3])
+        Hf = H.ravel()
+        wrap = ls + uL > nglob
+        xlo, xhi = pair_span(occ, mx, mx, 1, 0, 0)
+        if xlo >= xhi:
+            return  # no data at this frequency
+        # y: rows m_y of n = M_x·2L → T[m_x, y, re/im, l] for the columns m_x that the x pass reads
+        for axis in range(2):
+            src = G if axis == 0 else T
+            M = my if axis == 0 else mx
+            nu = mx if axis == 0 else ny  # units of 2L columns per row
+            npos = ny if axis == 0 else nx
+            C = Cy if axis == 0 else Cx
+            S = Sy if axis == 0 else Sx
+            E = Ey if axis == 0 else Ex
+            n = nu * L2
+            ylo, yhi = pair_span(occ, mx, my, 0, 0, mx) if axis == 0 else (xlo, xhi)
+            butterfly(src, M, n, ylo, yhi)
+            ub = max(1, blk // L2)
+            cp = npos // 2
+            u0, u1 = (xlo, mx - xlo) if axis == 0 else (0, ny)
+            for a0 in range(u0, u1, ub):
+                a1 = min(u1, a0 + ub)
+                width = (a1 - a0) * L2
+                jlo, jhi = pair_span(occ, mx, my, 0, a0, a1) if axis == 0 else (xlo, xhi)
+                for q in range(C.shape[0]):
+                    k = q % 4
+                    if k == 0:  # cosine rows j < (M+1)//2, sine rows M−1−j, j < M//2 (`butterfly`)
+                        accumulate_tile(src, a0 * L2, width, n, 0, 1, jlo, min(jhi, (M + 1) // 2), C, q, accC)
+                        accumulate_tile(src, a0 * L2, width, n, M - 1, -1, jlo, min(jhi, M // 2), S, q, accS)
+                    aC = accC[k]
+                    aS = accS[k]
+                    ec = E[q, 0]
+                    es = E[q, 1]
+                    for sgn in range(2):
+                        p = cp + q if sgn == 0 else cp - q
+                        if p < 0 or p >= npos or (sgn == 1 and q == 0):
+                            continue
+                        sv = np.float32(1 - 2 * sgn)
+                        for a in range(a0, a1):
+                            u = u64(a - a0) * u64(L2)
+                            if axis == 0:
+                                dst = u64(a * ny + p) * u64(L2)
+                                for t in range(uL):
+                                    rr = aC[u + t] - sv * aS[u + uL + t]
+                                    ii = aC[u + uL + t] + sv * aS[u + t]
+                                    T[dst + t] = rr * ec - sv * ii * es
+                                    T[dst + uL + t] = sv * rr * es + ii * ec
+                            elif not wrap:
+                                dst = u64(p * ny + a) * (nglob + nglob) + ls
+                                for t in range(uL):
+                                    rr = aC[u + t] - sv * aS[u + uL + t]
+                                    ii = aC[u + uL + t] + sv * aS[u + t]
+                                    Hf[dst + t] += rr * ec - sv * ii * es
+                                    Hf[dst + nglob + t] += sv * rr * es + ii * ec
+                            else:
+                                dst = u64(p * ny + a) * (nglob + nglob)
+                                for t in range(uL):
+                                    rr = aC[u + t] - sv * aS[u + uL + t]
+                                    ii = aC[u + uL + t] + sv * aS[u + t]
+                                    lg = (ls + t) % nglob
+                                    Hf[dst + lg] += rr * ec - sv * ii * es
+                                    Hf[dst + nglob + lg] += sv * rr * es + ii * ec
+
+    @_jit
+    def exact_fused(
+        w, P, Q, ua, ub, go, gi, glen, lstart, tab, dtab, lat, G, T, accC, accS, H, blk, f0, fstep
+    ):  # pragma: no cover
+        """The exact-lateral path per frequency f = f0, f0 + fstep, …: `spread_freq` of the Nb weight vectors
+        into G (Nb, ≥ M_x·M_y·2L_f; this thread's, zeroed first), then `lateral_sym` of each into H[b]
+        (Nb, N_x, N_y, 2, nglob; this thread's partial sums). One frequency's block stays in cache from
+        spreading to synthesis. lat = (Cy, Sy, Ey, Cx, Sx, Ex) per frequency."""
+        Cy, Sy, Ey, Cx, Sx, Ex = lat
+        nb = w.shape[0]
+        nx, ny = H.shape[1], H.shape[2]
+        mx = Cx.shape[2] + Sx.shape[2]
+        my = Cy.shape[2] + Sy.shape[2]
+        gs = G.shape[1]
+        Gf = G.ravel()
+        occ = np.zeros((nb, mx * my), np.uint8)
+        for f in range(f0, w.shape[1], fstep):
+            L = glen[f]
+            n1 = mx * my * 2 * L
+            for b in range(nb):
+                G[b, :n1] = 0
+            occ[:] = 0
+            spread_freq(w, P, Q, ua, ub, go, gi, L, tab, dtab, Gf, 0, gs, f, occ)
+            for b in range(nb):
+                lateral_sym(
+                    G[b],
+                    L,
+                    mx,
+                    my,
+                    nx,
+                    ny,
+                    Cy[f],
+                    Sy[f],
+                    Ey[f],
+                    Cx[f],
+                    Sx[f],
+                    Ex[f],
+                    T,
+                    accC,
+                    accS,
+                    H[b],
+                    u64(lstart[f]),
+                    blk,
+                    occ[b],
+                )
 
     @_jit
     def depth_synthesis(H, A, B, out, r0, r1):  # pragma: no cover
