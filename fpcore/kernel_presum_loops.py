@@ -478,6 +478,71 @@ if nb is not None:
                 )
 
     @_jit
+    def caccumulate(Xr, Xi, n, m0, m1, c0, width, Cr, Ci, q0, Ar, Ai):  # pragma: no cover
+        """A[k, :width] = Σ_{m0≤m<m1} (Cr + iCi)[q0 + k, m] (Xr + iXi)[m·n + c0 : … + width] for k < 4 (rows
+        of C past its end give 0): complex rows on split re/im planes, four outputs per row loaded."""
+        nq = Cr.shape[0]
+        uw = u64(width)
+        for k in range(4):
+            Ar[k, :width] = 0
+            Ai[k, :width] = 0
+        for m in range(m0, m1):
+            r = u64(m) * u64(n) + u64(c0)
+            for k in range(min(4, nq - q0)):
+                cr = Cr[q0 + k, m]
+                ci = Ci[q0 + k, m]
+                ar = Ar[k]
+                ai = Ai[k]
+                for t in range(uw):
+                    xr = Xr[r + t]
+                    xi = Xi[r + t]
+                    ar[t] += cr * xr - ci * xi
+                    ai[t] += cr * xi + ci * xr
+
+    @_jit
+    def project_freq(R, pyr, pyi, pxr, pxi, oidx, out, Xr, Xi, Yr, Yi, Ar, Ai, blk, f0, fstep):  # pragma: no cover
+        """R_θθ(f) = P_θu(f) R_uθ(f) on a regular matrix array and a tensor grid of output sines, separable
+        (docs/design.md §4.2): per frequency f = f0, f0 + fstep, …, Y[s_y, (u_x, i)] = Σ_{u_y} P^y[s_y, u_y]
+        R[(u_y, u_x), i], then Z[s_x, (s_y, i)] = Σ_{u_x} P^x[s_x, u_x] Y[u_x, (s_y, i)], out[f, oidx[s_y, s_x],
+        i] = Z (oidx < 0: a sine not kept). R (Nf, N_uy, N_ux, N_i, 2) and out (Nf, N_o, N_i, 2): re/im
+        pairs; P^y = pyr + i pyi (Nf, N_sy, N_uy), P^x likewise; Xr … Ai: this thread's work planes."""
+        nf, nuy, nux, ni, _ = R.shape
+        nsy, nsx = oidx.shape
+        for f in range(f0, nf, fstep):
+            # split planes X[u_y, (u_x, i)]
+            for uy in range(nuy):
+                for ux in range(nux):
+                    for i in range(ni):
+                        j = (uy * nux + ux) * ni + i
+                        Xr[j] = R[f, uy, ux, i, 0]
+                        Xi[j] = R[f, uy, ux, i, 1]
+            # y: Y[s_y, (u_x, i)], stored transposed as Yt[u_x, (s_y, i)]
+            n = nux * ni
+            for c0 in range(0, n, blk):
+                w = min(blk, n - c0)
+                for q in range(0, nsy, 4):
+                    caccumulate(Xr, Xi, n, 0, nuy, c0, w, pyr[f], pyi[f], q, Ar, Ai)
+                    for k in range(min(4, nsy - q)):
+                        for t in range(w):
+                            ux, i = divmod(c0 + t, ni)
+                            j = (ux * nsy + q + k) * ni + i
+                            Yr[j] = Ar[k, t]
+                            Yi[j] = Ai[k, t]
+            # x: Z[s_x, (s_y, i)] → out
+            n = nsy * ni
+            for c0 in range(0, n, blk):
+                w = min(blk, n - c0)
+                for q in range(0, nsx, 4):
+                    caccumulate(Yr, Yi, n, 0, nux, c0, w, pxr[f], pxi[f], q, Ar, Ai)
+                    for k in range(min(4, nsx - q)):
+                        for t in range(w):
+                            sy, i = divmod(c0 + t, ni)
+                            o = oidx[sy, q + k]
+                            if o >= 0:
+                                out[f, o, i, 0] = Ar[k, t]
+                                out[f, o, i, 1] = Ai[k, t]
+
+    @_jit
     def depth_synthesis(H, A, B, out, r0, r1):  # pragma: no cover
         """out[r, (n, re/im)] = Σ_c Σ_l Hr[c, r, l] A[l] + Hi[c, r, l] B[l] (band → depth, partial sums c)."""
         nc = H.shape[0]

@@ -1,0 +1,73 @@
+"""The full-size frame's fast paths (issue 15, item 6) against their references: the exact lateral path of
+PresumTransform (centre-symmetric DFTs, rows without samples skipped, one frequency per thread block) against
+the direct sum with a fingerprint-like weight (most output directions at zero weight) and against the NUFFT
+lateral path; the compiled separable projection P_θu against the general phase-matrix product."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("numba")
+
+from fpcore.acquisition import PlaneWaveData, PlaneWaveSequence, Probe, Spectrum, to_plane_waves  # noqa: E402
+from fpcore.grid import Grid  # noqa: E402
+from fpcore.kernel import direct_sum, wavevectors  # noqa: E402
+from fpcore.kernel_presum import PresumTransform  # noqa: E402
+
+C0 = 1540.0
+DS = 0.031
+
+
+def _disc(radius: int, offset: float) -> np.ndarray:
+    """Sines on a lattice of step DS (offset in steps) cut to a disc: the output directions' shape."""
+    ax = (np.arange(-radius, radius + 1) + offset) * DS
+    yy, xx = np.meshgrid(ax, ax, indexing="ij")
+    keep = xx.ravel() ** 2 + yy.ravel() ** 2 <= (radius * DS) ** 2
+    return np.stack([xx.ravel()[keep], yy.ravel()[keep]], axis=1)
+
+
+@pytest.mark.parametrize("offset", [0.0, 0.5, 0.3])
+def test_exact_path_with_empty_directions_matches_direct_sum(offset: float) -> None:
+    """offset 0 / 0.5: a lattice symmetric about 0 (θ_c = 0); 0.3: off-centre (the phase e^{iθ_c p})."""
+    so = _disc(5, offset)
+    si = np.stack([np.array([-2.0, 0.0, 2.0]) * DS, np.array([0.0, 2.0, 0.0]) * DS], axis=1)
+    freqs = np.linspace(3e6, 5e6, 6)
+    grid = Grid.centred((0.4e-3, -0.2e-3, 11e-3), (9, 8, 13), 0.1e-3)
+    rng = np.random.default_rng(7)
+    n = freqs.size * so.shape[0] * si.shape[0]
+    w = (rng.standard_normal(n) + 1j * rng.standard_normal(n)).astype(np.complex64).reshape(freqs.size, -1, 3)
+    cone = np.hypot(so[:, 0] - 2 * DS, so[:, 1]) < 2.5 * DS  # a fingerprint's angular support, off-centre
+    w[:, ~cone] = 0
+    w[2] = 0  # a frequency without data
+    w = w.ravel()
+    K = wavevectors(freqs, so, si, C0, 3)
+    ref = direct_sum(w, K, grid.points()).reshape(grid.shape)
+    exact = PresumTransform(freqs, so, si, C0, grid, nthreads=2, lateral="exact")
+    nufft = PresumTransform(freqs, so, si, C0, grid, nthreads=1, lateral="nufft")
+    got = exact(w)
+    scale = np.abs(ref).max()
+    assert np.abs(got - ref).max() < 1e-4 * scale
+    assert np.abs(got - nufft(w)).max() < 1e-4 * scale
+    assert np.abs(exact(np.stack([w, 2 * w]))[1] - 2 * got).max() < 1e-6 * scale  # rows: one map each
+    assert not np.any(exact(np.zeros_like(w)))  # no sample at all: an empty map
+
+
+def test_separable_projection_matches_the_phase_matrix() -> None:
+    """A 6×5 matrix array (x-fastest) and a disc of output sines: the compiled y-then-x projection equals
+    Σ_u e^{−ik s·u} R_u (the general branch of to_plane_waves, here written out)."""
+    px, py = np.meshgrid(np.arange(6) * 0.3e-3, np.arange(5) * 0.3e-3)
+    pos = np.stack([px.ravel() - 0.75e-3, py.ravel() - 0.6e-3, np.zeros(30)], axis=1)
+    probe = Probe(positions=pos, pitch=0.3e-3, centre_frequency=4e6, bandwidth=2e6)
+    sines = np.array([[-0.1, 0.0], [0.0, 0.0], [0.1, 0.05]])
+    seq = PlaneWaveSequence(sines=sines)
+    freqs = np.linspace(3e6, 5e6, 7)
+    rng = np.random.default_rng(1)
+    data = (rng.standard_normal((7, 30, 3)) + 1j * rng.standard_normal((7, 30, 3))).astype(np.complex64)
+    out = _disc(4, 0.0)
+    pw = to_plane_waves(Spectrum(data, freqs, C0, probe, seq), out)
+    assert isinstance(pw, PlaneWaveData) and pw.data.shape == (7, out.shape[0], 3)
+    k = 2 * np.pi * freqs / C0
+    phase = np.exp(-1j * k[:, None, None] * (out @ pos[:, :2].T)[None])
+    ref = np.einsum("fou,fui->foi", phase, data.astype(np.complex128))
+    assert np.abs(pw.data - ref).max() < 1e-5 * np.abs(ref).max()
