@@ -18,7 +18,8 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Collection, Mapping
+from collections.abc import Callable, Collection, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -213,6 +214,7 @@ class Pipeline:
         self._ref: Acquisition | None = None  # the acquisition of the last set-up (calibration or frame)
         self.setup_s = 0.0
         self._noticed: set[str] = set()
+        self._second: ThreadPoolExecutor | None = None  # the null models' thread (process, overlap)
 
     # -- set-up --------------------------------------------------------------------------------------
     def warm_up(self) -> None:
@@ -413,11 +415,13 @@ class Pipeline:
             pw = imager.plane_waves(acq)
             t1 = time.perf_counter()
             gammas = {n: imager.gamma(pw, fp) for n, fp in fps.items()}
-            image = imager.confocal(pw) if (cfg.publish_image if with_image is None else with_image) else None
-            t2 = time.perf_counter()
+            want_image = cfg.publish_image if with_image is None else with_image
             grid = imager.grid
+            nulls_of = self._null_models(acq, pw, fps, gammas, band, overlap=want_image)
+            image = imager.confocal(pw) if want_image else None
+            t2 = time.perf_counter()
             truths = truth_positions(acq.ground_truth)
-            nulls = {n: null_of(g, grid, acq, pw, fps[n], band, self._level) for n, g in gammas.items()}
+            nulls = nulls_of()
             dets: list[tuple[Detection, float | None]] = []
             for name, g in gammas.items():
                 for d in find_targets(g, grid, acq, band, name, cfg.n_peaks, cfg.interior, nulls[name], cfg.max_pfa):
@@ -456,6 +460,35 @@ class Pipeline:
             notices,
             tv,
         )
+
+    def _null_models(
+        self,
+        acq: Acquisition,
+        pw: PlaneWaveData,
+        fps: Mapping[str, Fingerprint],
+        gammas: Mapping[str, np.ndarray],
+        band: tuple[float, float],
+        overlap: bool,
+    ) -> Callable[[], dict[str, NullModel]]:
+        """The null model of each γ-map (fpcore.locate.null_of: the physical level, docs/design.md §4.9 eq. B1,
+        then the CFAR), as a call that returns them. With ``overlap`` they are computed on a second thread
+        while the caller makes the confocal image: both use the 2 cores, and the serial parts of each (the
+        CFAR's filters, the level's FFT set-up and products) fill the other's idle time. The fingerprints'
+        aperture factors (cached; made by the imager's kernel, which is not re-entrant) are made here first."""
+        level, grid = self._level, self.grid
+        if level is not None:
+            res = resolution_of(grid, acq, band)
+            for fp in fps.values():
+                level.aperture(acq, pw, fp, res)
+
+        def run() -> dict[str, NullModel]:
+            return {n: null_of(g, grid, acq, pw, fps[n], band, level) for n, g in gammas.items()}
+
+        if not overlap or not gammas:
+            return run
+        if self._second is None:
+            self._second = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fp-null")
+        return self._second.submit(run).result
 
     def _notice(self, key: str, text: str, out: list[str]) -> None:
         if key not in self._noticed:
