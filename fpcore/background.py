@@ -67,8 +67,9 @@ class NullPower:
         self.grid = grid
         self.eps = eps
         self._kernels: OrderedDict[tuple, Kernel] = OrderedDict()
-        self._fingerprints: OrderedDict[tuple, np.ndarray] = OrderedDict()  # Ê_F e^{−iK·r0} per fingerprint
-        self._data: tuple[tuple, np.ndarray] | None = None  # Ê_R of the last frame (one per frame, any fp)
+        # Ê_F e^{−iK·r0} per fingerprint, with its output directions
+        self._fingerprints: OrderedDict[tuple, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self._data: tuple[tuple, np.ndarray, np.ndarray] | None = None  # Ê_R of the last frame, directions made
         self._cache = cache
 
     @staticmethod
@@ -106,31 +107,43 @@ class NullPower:
             self._kernels.move_to_end(key)
         return kern, nu
 
-    def _fingerprint_side(self, pw: PlaneWaveData, fp: Fingerprint, nu: np.ndarray) -> np.ndarray:
-        """conj(Ê_F) e^{−iK·r0} with the one-sided weights (w_0 = 1, w_ν>0 = 2), cached per fingerprint."""
+    def _fingerprint_side(self, pw: PlaneWaveData, fp: Fingerprint, nu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """conj(Ê_F) e^{−iK·r0} with the one-sided weights (w_0 = 1, w_ν>0 = 2), and the output directions
+        where it is not zero (a fingerprint's angular support), cached per fingerprint."""
         key = (getattr(fp, "token", id(fp)), nu.tobytes(), pw.out_sines.tobytes(), pw.in_sines.tobytes())
-        t = self._fingerprints.get(key)
-        if t is None:
+        hit = self._fingerprints.get(key)
+        if hit is None:
             t = np.conj(envelope_spectrum(np.asarray(fp.data)))
             t[1:] *= 2.0
+            support = np.flatnonzero(np.any(t != 0, axis=(0, 2)))
             K = wavevectors(nu, pw.out_sines, pw.in_sines, pw.c0, self.grid.ndim)
             t = (t.ravel() * np.exp(-1j * (K @ from_xyz(fp.r0, self.grid.ndim)))).astype(np.complex64)
-            self._fingerprints[key] = t
+            hit = self._fingerprints[key] = (t, support)
             while len(self._fingerprints) > 8 * self._cache:
                 self._fingerprints.popitem(last=False)
-        return t
+        return hit
 
-    def _data_side(self, pw: PlaneWaveData) -> np.ndarray:
-        """Ê_R of this frame's data, computed once whatever the number of fingerprints."""
+    def _data_side(self, pw: PlaneWaveData, outputs: np.ndarray) -> np.ndarray:
+        """Ê_R of this frame's data (flat), made once per frame and output direction whatever the number of
+        fingerprints, and only on the directions `outputs` asked for so far (zero elsewhere): the product
+        with a fingerprint's side needs no more (≈ 20 % of the full-size frame's directions: 5× fewer FFTs)."""
         key = (id(pw.data), pw.data.shape, pw.data.__array_interface__["data"][0])
         if self._data is None or self._data[0] != key:
-            self._data = (key, envelope_spectrum(np.asarray(pw.data)).ravel())
-        return self._data[1]
+            self._data = (key, np.zeros(pw.data.shape, np.complex64), np.zeros(pw.data.shape[1], bool))
+        _, e, done = self._data
+        need = outputs[~done[outputs]]
+        if need.size == done.size:
+            e[...] = envelope_spectrum(np.asarray(pw.data))
+        elif need.size:
+            e[:, need] = envelope_spectrum(np.asarray(pw.data)[:, need])
+        done[need] = True
+        return e.ravel()
 
     def power(self, pw: PlaneWaveData, fp: Fingerprint) -> np.ndarray:
         """P(r) ≥ 0 on the grid (eq. B1), float64."""
         kern, nu = self._kernel(pw)
-        w = self._data_side(pw) * self._fingerprint_side(pw, fp, nu)
+        t, support = self._fingerprint_side(pw, fp, nu)
+        w = self._data_side(pw, support) * t
         p = kern(w).real.astype(np.float64)
         return np.maximum(p, 0.0)
 

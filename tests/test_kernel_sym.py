@@ -71,3 +71,35 @@ def test_separable_projection_matches_the_phase_matrix() -> None:
     phase = np.exp(-1j * k[:, None, None] * (out @ pos[:, :2].T)[None])
     ref = np.einsum("fou,fui->foi", phase, data.astype(np.complex128))
     assert np.abs(pw.data - ref).max() < 1e-5 * np.abs(ref).max()
+
+
+def test_null_power_on_the_fingerprints_directions_equals_the_full_data_side() -> None:
+    """NullPower makes the data's envelope spectrum only on the output directions where a fingerprint's side
+    is not zero (its angular support), once per frame: P(r) of eq. B1 equals the product with Ê_R made on
+    every direction, for two fingerprints with different supports, in either order."""
+    from fpcore.background import NullPower, envelope_spectrum
+    from fpcore.fingerprint import point_fingerprint
+
+    freqs = np.linspace(1.8e6, 2.6e6, 17)
+    out = np.stack([np.linspace(-0.5, 0.5, 21), np.zeros(21)], axis=1)
+    inn = np.stack([np.linspace(-0.2, 0.2, 5), np.zeros(5)], axis=1)
+    grid = Grid.centred((0.0, 25e-3), (31, 29), 0.25e-3)
+    rng = np.random.default_rng(2)
+    data = (rng.standard_normal((17, 21, 5)) + 1j * rng.standard_normal((17, 21, 5))).astype(np.complex64)
+    pw = PlaneWaveData(data, freqs, out, inn, C0)
+    fps = []
+    for lo, hi, x in ((0, 8, -1e-3), (6, 15, 1e-3)):  # two angular supports, overlapping
+        fp = point_fingerprint(freqs, out, inn, C0, np.array([x, 0.0, 25e-3]))
+        fp.data[:, :lo] = 0
+        fp.data[:, hi:] = 0
+        fps.append(fp)
+    npow = NullPower(grid)
+    for order in (fps, fps[::-1]):
+        npow._data = None  # a new frame
+        for fp in order:
+            kern, nu = npow._kernel(pw)
+            t, support = npow._fingerprint_side(pw, fp, nu)
+            assert support.size < out.shape[0]
+            ref = np.maximum(kern(envelope_spectrum(data).ravel() * t).real.astype(np.float64), 0.0)
+            got = npow.power(pw, fp)
+            assert np.abs(got - ref).max() <= 1e-6 * np.abs(ref).max()
