@@ -1,6 +1,7 @@
 """The compiled per-frame loops of the lattice pre-sum kernel (`fpcore.kernel_presum.PresumTransform`,
 docs/design.md §5) and the thread pool that runs them; the plan they execute (lattice, fixed-point
-positions, tables) is built in `fpcore.kernel_presum`.
+positions, tables) is built in `fpcore.kernel_presum`. Also the separable projection P_θu of
+`fpcore.acquisition.to_plane_waves` (`project_freq`), on the same threads.
 
 numba kernels — the whole per-frame path. Single precision; flat float32 buffers in which a row holds L
 real parts then L imaginary parts. They run on plain Python threads (`pool`; the kernels release the
@@ -84,9 +85,16 @@ def _jit(fn: Callable[..., Any]) -> Callable[..., Any]:
         return nb.njit(fastmath=True, nogil=True)(fn)  # compiled at its first call, every process
 
 
+def _inline(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """numba.njit(fastmath, nogil, inline='always'): a helper compiled inside each kernel that calls it (cached
+    with it), never on its own."""
+    assert nb is not None
+    return nb.njit(fastmath=True, nogil=True, inline="always")(fn)
+
+
 if nb is not None:
 
-    @_jit
+    @_inline
     def spread_freq(w, P, Q, ua, ub, go, gi, L, tab, dtab, G, b0, bstride, f, occ):  # pragma: no cover
         """Depth spreading of frequency f's samples j = (f, o, i) for each weight vector b:
         G[b0 + b·bstride + g(o, i)·2L + (re/im)·L + l] += w_bj P_fo Q_fi φ(u_j − l).
@@ -289,7 +297,7 @@ if nb is not None:
                             Hf[dst + lg] += acc[u + t] - sv * acc[n + u + L + t]
                             Hf[dst + nglob + lg] += acc[u + L + t] + sv * acc[n + u + t]
 
-    @_jit
+    @_inline
     def butterfly(G, M, n, j0, j1):  # pragma: no cover
         """Rows j ∈ [j0, min(j1, M//2)) of G (M rows of n) become G_j + G_{M−1−j}, rows M−1−j become
         G_j − G_{M−1−j}."""
@@ -302,7 +310,7 @@ if nb is not None:
                 G[a + t] = x + y
                 G[b + t] = x - y
 
-    @_jit
+    @_inline
     def pair_span(occ, mx, M, axis, a0, a1):  # pragma: no cover
         """[lo, hi): the pairs (j, M−1−j) of lattice rows holding data. axis 0: rows m_y, any group of the
         columns m_x ∈ [a0, a1); axis 1: rows m_x, any group. occ (M_y·M_x) marks the occupied groups."""
@@ -319,7 +327,7 @@ if nb is not None:
                     break
         return lo, max(lo, hi)
 
-    @_jit
+    @_inline
     def accumulate_tile(G, c0, width, n, r_first, r_step, m0, nrows, coef, q0, acc):  # pragma: no cover
         """acc[k, :width] = Σ_{m0≤m<nrows} coef[q0 + k, m] G[row_m·n + c0 : … + width] for k < 4 (rows of coef past
         its end give 0), row_m = r_first + r_step·m: four outputs from each row loaded, four rows at a time
@@ -355,7 +363,7 @@ if nb is not None:
                 a2[t] += c20 * g0 + c21 * g1 + c22 * g2 + c23 * g3
                 a3[t] += c30 * g0 + c31 * g1 + c32 * g2 + c33 * g3
 
-    @_jit
+    @_inline
     def lateral_sym(G, L, mx, my, nx, ny, Cy, Sy, Ey, Cx, Sx, Ex, T, accC, accS, H, ls, blk, occ):  # pragma: no cover
         """Exact lateral DFTs of one frequency's rows G[(m_y, m_x), re/im, l] accumulated into H[x, y, re/im,
         ls + l (mod nglob)]: Σ_m e^{iθ_m p} G_m = e^{iθ_c p} Σ_m e^{iθ'_m p} G_m with θ' = θ − θ_c symmetric
@@ -477,7 +485,7 @@ if nb is not None:
                     occ[b],
                 )
 
-    @_jit
+    @_inline
     def caccumulate(Xr, Xi, n, m0, m1, c0, width, Cr, Ci, q0, Ar, Ai):  # pragma: no cover
         """A[k, :width] = Σ_{m0≤m<m1} (Cr + iCi)[q0 + k, m] (Xr + iXi)[m·n + c0 : … + width] for k < 4 (rows
         of C past its end give 0): complex rows on split re/im planes, four outputs per row loaded."""
