@@ -255,8 +255,9 @@ class Acquisition:
         phase = (np.exp(-2j * np.pi * f * self.t0) / self.fs).astype(np.complex64)
         if xp is None:
             rf = self.rf.astype(np.float32, copy=False)
-            spec = sfft.rfft(rf, n=n_fft, axis=2, workers=-1)[:, :, band]
-            data = np.ascontiguousarray(np.transpose(spec * phase, (2, 0, 1))).astype(np.complex64)
+            spec = sfft.rfft(rf, n=n_fft, axis=2, workers=-1)[:, :, band]  # the band's bins: a new array
+            spec *= phase
+            data = np.ascontiguousarray(np.transpose(spec, (2, 0, 1)), dtype=np.complex64)
         else:  # the RF travels in its own dtype (int16 halves the copy), then float32 on the device
             rf = xp.asarray(self.rf).astype(xp.float32, copy=False)
             spec = xp.fft.rfft(rf, n=n_fft, axis=2)[:, :, xp.asarray(band)]
