@@ -12,7 +12,9 @@ exactly `services.pipeline.Pipeline` as `fp process` and `fp track` run it. Dist
 new indices and timestamps.
 
 Prints the wall time and the process CPU time per frame of ``Pipeline.process`` (median, p95) with its three
-stages, then each stage split into its calls, each timed alone on the last frame (median of ``--repeat``):
+stages (the null models run on a second thread while the confocal image is made: 'gamma_kernel' holds the
+γ-maps, the image and whatever of the null models overlaps it, 'detection' the rest), then each stage split
+into its calls, each timed alone on the last frame (median of ``--repeat``):
 spectrum (rFFT of the padded record, band bins), projection (P_θu products), γ (one fingerprint), confocal
 image, null model (the physical null level, eq. B1, and the CFAR), detections, tracker update. The bus adds
 decoding and encoding: bench/bench_scaling.py ``--size full`` runs the same frames through `fp process` and

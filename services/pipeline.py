@@ -100,7 +100,8 @@ class PipelineConfig:
 class FrameResult:
     """What one frame gave: γ-maps (fingerprint name → map on ``grid``), the confocal image (None when
     not asked for), detections with their distance to the frame's truth, tracks, and the time of the
-    three compute stages (s)."""
+    three compute stages (s; with the image, 'gamma_kernel' includes the part of the null models made
+    alongside it, Pipeline._null_models, and 'detection' the rest)."""
 
     acq: Acquisition
     pw: PlaneWaveData
