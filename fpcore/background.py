@@ -39,6 +39,7 @@ from .grid import Grid
 from .kernel import GridTransform, Kernel, wavevectors
 from .kernel_presum import PresumTransform
 from .likelihood import Imager
+from .speckle_level import SpeckleLevel, mix
 
 __all__ = ["envelope_spectrum", "NullPower", "NullLevel"]
 
@@ -168,12 +169,29 @@ class NullLevel:
     smoothed over one resolution cell, normalised to a maximum of 1. Where A(r) < `min_aperture` the
     fingerprint, moved there, misses the array almost entirely: γ cannot test the hypothesis and the
     node is not searched (`visible`).
+
+    Single scattering (`single_scattering`, off by default; fpcore.speckle_level, eq. B2). Given the map,
+    the level is the mixture max(a P A, b Q) fitted to the map's per-depth means, Q the frame's confocal
+    image blurred by the fingerprint's point response: where the beads' single scattering dominates, under
+    the surface, P A is too smooth in depth and too low. It costs power on targets that stand out of the
+    confocal image (module doc there). `last_shares` holds the last fit's shares of depth rows set by
+    each component (diffuse, single scattering).
     """
 
     def __init__(
-        self, imager: Imager, n_noise: int = 24, min_aperture: float = 0.1, seed: int = 0, cache: int = 8
+        self,
+        imager: Imager,
+        n_noise: int = 24,
+        min_aperture: float = 0.1,
+        seed: int = 0,
+        cache: int = 8,
+        single_scattering: bool = False,
     ) -> None:
         self.imager = imager
+        self.single_scattering = single_scattering
+        self.speckle = SpeckleLevel(imager)
+        self.last_shares: tuple[float, float] = (1.0, 0.0)
+        self._image: tuple[tuple, np.ndarray] | None = None  # the last frame's confocal image (any fp)
         self.power = NullPower(imager.grid, eps=max(imager.config.eps, 1e-4))
         self.n_noise = n_noise
         self.min_aperture = min_aperture
@@ -218,13 +236,32 @@ class NullLevel:
         return a
 
     def level(
-        self, acq: Acquisition, pw: PlaneWaveData, fp: Fingerprint, resolution: tuple[float, float]
+        self,
+        acq: Acquisition,
+        pw: PlaneWaveData,
+        fp: Fingerprint,
+        resolution: tuple[float, float],
+        gamma: np.ndarray | None = None,
+        image: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """(level, visible): γ²'s null level up to a constant, and the nodes where the fingerprint can be
-        tested (A ≥ `min_aperture`)."""
+        tested (A ≥ `min_aperture`). With the map `gamma` (and `single_scattering`), the level is the
+        fitted mixture with the single-scattering level (class doc); `image`: the frame's confocal image
+        if the caller has it (else it is made here, once per frame)."""
         a = self.aperture(acq, pw, fp, resolution)
         if self.power.uniform(pw.freqs):
             lev = self.power.gamma_level(pw, fp) * a
         else:  # decimated band (n_freq): no periodic envelope spectrum; the CFAR takes the depth trend alone
             lev = a.astype(np.float64)
-        return lev, a >= self.min_aperture
+        visible = a >= self.min_aperture
+        if gamma is not None and self.single_scattering:
+            q = self.speckle.level(pw, fp, self.confocal(pw) if image is None else image)
+            lev, self.last_shares = mix(np.asarray(gamma, np.float64) ** 2, lev, q, visible)
+        return lev, visible
+
+    def confocal(self, pw: PlaneWaveData) -> np.ndarray:
+        """The frame's confocal image (paper S7), made once per frame whatever the number of fingerprints."""
+        key = (id(pw.data), pw.data.shape, pw.data.__array_interface__["data"][0])
+        if self._image is None or self._image[0] != key:
+            self._image = (key, self.imager.confocal(pw))
+        return self._image[1]

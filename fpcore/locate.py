@@ -46,10 +46,12 @@ def null_of(
     fp: Fingerprint,
     band: tuple[float, float],
     level: NullLevel | None,
+    image: np.ndarray | None = None,
 ) -> NullModel:
-    """The local null model of one γ-map, with `level`'s physical null level (None: the CFAR alone)."""
+    """The local null model of one γ-map, with `level`'s physical null level (None: the CFAR alone);
+    `image`: the frame's confocal image when the caller has made it (the single-scattering level uses it)."""
     res = resolution_of(grid, acq, band)
-    lev, vis = level.level(acq, pw, fp, res) if level is not None else (None, None)
+    lev, vis = level.level(acq, pw, fp, res, gamma=gamma, image=image) if level is not None else (None, None)
     return null_model(gamma, grid, res, level=lev, visible=vis)
 
 
