@@ -65,7 +65,9 @@ class PipelineConfig:
     reported only below this calibrated false-alarm probability (docs/design.md §4.9); ``interior``: the
     border heuristic (skip maxima within δρ_D of the grid's border; off by default, the local significance
     does not need it); ``track_integrate``: the tracker searches the mean of the last K γ-maps
-    (fpcore.tracking)."""
+    (fpcore.tracking); ``single_scattering_null``: the null level mixes in the single-scattering level of
+    docs/design.md §4.9 eq. (B2) (fpcore.speckle_level: for backgrounds dominated by single scattering; it
+    costs power on targets that stand out of the confocal image, and makes the image every frame)."""
 
     band: tuple[float, float] | None = None
     n_freq: int | None = None
@@ -84,6 +86,7 @@ class PipelineConfig:
     track: bool = True
     track_integrate: int = 1
     memory_budget: int | None = None  # bytes; None: fpcore.budget.memory_budget() (fp --memory-budget, env)
+    single_scattering_null: bool = False
 
     def __post_init__(self) -> None:
         if not 0 < self.svd_threshold <= 1:
@@ -248,7 +251,7 @@ class Pipeline:
                 memory_budget=cfg.memory_budget,
             )
             grid = imager.grid
-            self._level = NullLevel(imager)
+            self._level = NullLevel(imager, single_scattering=self.cfg.single_scattering_null)
             self._band = band
             self._geom = geometry_key(acq)
             self._ref = acq
@@ -262,6 +265,8 @@ class Pipeline:
                         imager.template(pw, entry.fp)
                         # aperture factor (cached) and the null level's NUFFT plan, before the first frame is timed
                         self._level.level(acq, pw, entry.fp, resolution_of(grid, acq, band))
+                        if self.cfg.single_scattering_null:
+                            self._level.speckle.point_response(pw, entry.fp)  # eq. (B2)'s |h|²
                     except ValueError as exc:
                         entry.fp, entry.error = None, str(exc)
             self.setup_s += time.perf_counter() - t0
@@ -418,8 +423,13 @@ class Pipeline:
             gammas = {n: imager.gamma(pw, fp) for n, fp in fps.items()}
             want_image = cfg.publish_image if with_image is None else with_image
             grid = imager.grid
-            nulls_of = self._null_models(acq, pw, fps, gammas, band, overlap=want_image)
-            image = imager.confocal(pw) if want_image else None
+            if cfg.single_scattering_null:  # eq. (B2) needs the image first: no overlap
+                image = imager.confocal(pw)
+                nulls_of = self._null_models(acq, pw, fps, gammas, band, overlap=False, image=image)
+                image = image if want_image else None
+            else:
+                nulls_of = self._null_models(acq, pw, fps, gammas, band, overlap=want_image)
+                image = imager.confocal(pw) if want_image else None
             t2 = time.perf_counter()
             truths = truth_positions(acq.ground_truth)
             nulls = nulls_of()
@@ -470,12 +480,14 @@ class Pipeline:
         gammas: Mapping[str, np.ndarray],
         band: tuple[float, float],
         overlap: bool,
+        image: np.ndarray | None = None,
     ) -> Callable[[], dict[str, NullModel]]:
         """The null model of each γ-map (fpcore.locate.null_of: the physical level, docs/design.md §4.9 eq. B1,
         then the CFAR), as a call that returns them. With ``overlap`` they are computed on a second thread
         while the caller makes the confocal image: both use the 2 cores, and the serial parts of each (the
         CFAR's filters, the level's FFT set-up and products) fill the other's idle time. The fingerprints'
-        aperture factors (cached; made by the imager's kernel, which is not re-entrant) are made here first."""
+        aperture factors (cached; made by the imager's kernel, which is not re-entrant) are made here first.
+        ``image``: the frame's confocal image, for the single-scattering level (``single_scattering_null``)."""
         level, grid = self._level, self.grid
         if level is not None:
             res = resolution_of(grid, acq, band)
@@ -483,7 +495,7 @@ class Pipeline:
                 level.aperture(acq, pw, fp, res)
 
         def run() -> dict[str, NullModel]:
-            return {n: null_of(g, grid, acq, pw, fps[n], band, level) for n, g in gammas.items()}
+            return {n: null_of(g, grid, acq, pw, fps[n], band, level, image) for n, g in gammas.items()}
 
         if not overlap or not gammas:
             return run

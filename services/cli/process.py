@@ -78,6 +78,12 @@ def add_process_parser(sub: argparse._SubParsersAction) -> None:
     )
     img.add_argument("--no-image", action="store_true", help="do not publish the confocal image")
     img.add_argument(
+        "--null-single-scattering",
+        action="store_true",
+        help="mix the single-scattering level into the null level (docs/design.md §4.9, eq. B2): for backgrounds "
+        "dominated by single scattering; costs power on targets that stand out of the confocal image",
+    )
+    img.add_argument(
         "--map-encoding",
         choices=("uint16", "float32"),
         default="uint16",
@@ -173,6 +179,7 @@ def config_from_args(args: argparse.Namespace) -> ProcessorConfig:
         interior=args.skip_border,
         max_frame_bytes=args.max_frame_bytes,
         publish_image=not args.no_image,
+        single_scattering_null=args.null_single_scattering,
         map_encoding=args.map_encoding,
         track=not args.no_track,
         track_integrate=args.track_integrate,
