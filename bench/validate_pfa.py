@@ -13,6 +13,11 @@ within 1 mm of the truth.
 
     python bench/validate_pfa.py                 # quick sizes; 3-D null set of 48 maps (minutes)
     python bench/validate_pfa.py --iid 500 --maps2d 480 --maps3d 320 --power 32   # README figures (~30 min)
+
+The fog maps are one per simulated medium by default (``--frames-per-seed 1``): frames of one medium
+are correlated (the fog decorrelates over a few frames, so a fog feature that fires fires on several), and
+rates over correlated maps have a wider spread than their count suggests. The intervals printed are on
+the independent units (media).
 """
 
 from __future__ import annotations
@@ -61,6 +66,8 @@ def scenario_maps(
     frames_per_seed: int = 8,
     frame_step: int = 2,
     seed0: int = 100,
+    medium: dict | None = None,
+    single_scattering_null: bool = False,
 ) -> list[dict]:
     """Per frame: each target's fingerprint's top detection (PFA, position error if a truth exists)."""
     rows: list[dict] = []
@@ -68,12 +75,12 @@ def scenario_maps(
     task = progress.add_task(f"{name} {'with targets' if with_targets else 'fog only'}", total=n_maps)
     imager = level = fps = grid = None
     for seed in range(seeds):
-        sc = scenario(name, quick=True, seed=seed0 + seed, n_frames=frames_per_seed * frame_step)
+        sc = scenario(name, quick=True, seed=seed0 + seed, n_frames=frames_per_seed * frame_step, **(medium or {}))
         if grid is None:
             first = sc.frame(0)
             grid = Grid.for_acquisition(first, sc.band)  # the default grid: whole record, no window
             imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
-            level = fpcore.NullLevel(imager)
+            level = fpcore.NullLevel(imager, single_scattering=single_scattering_null)
             fps = sc.fingerprints(imager.out_sines_for(first))
         if not with_targets:
             sc = sc.without_targets()
@@ -107,6 +114,24 @@ def scenario_maps(
 def rates(pfas: list[float]) -> list[float]:
     p = np.asarray(pfas)
     return [float(np.mean(p < a)) for a in ALPHAS]
+
+
+def interval(k: int, n: int, level: float = 0.95) -> tuple[float, float]:
+    """Clopper–Pearson interval of a rate k/n (exact binomial): the honest spread of a measured rate."""
+    from scipy.stats import beta
+
+    lo = float(beta.ppf((1 - level) / 2, k, n - k + 1)) if k > 0 else 0.0
+    hi = float(beta.ppf(1 - (1 - level) / 2, k + 1, n - k)) if k < n else 1.0
+    return lo, hi
+
+
+def per_medium(rows: list[dict], alpha: float) -> tuple[int, int]:
+    """(media with a map below α, media): frames of one medium are correlated, so the independent unit of
+    a fog null set is the medium; a medium counts once if any of its maps reports PFA < α."""
+    media: dict[int, bool] = {}
+    for r in rows:
+        media[r["seed"]] = media.get(r["seed"], False) or r["pfa"] < alpha
+    return sum(media.values()), len(media)
 
 
 def pp_plot(path: Path, sets: dict[str, list[float]]) -> None:
@@ -145,8 +170,9 @@ def main() -> None:
     ap.add_argument(
         "--frames-per-seed",
         type=int,
-        default=8,
-        help="fog-only frames per simulated medium (frames of one medium are correlated)",
+        default=1,
+        help="fog-only frames per simulated medium (default 1: frames of one medium are correlated — a "
+        "persistent fog feature fires on several of them — so one map per medium gives independent maps)",
     )
     ap.add_argument(
         "--seed0",
@@ -155,29 +181,37 @@ def main() -> None:
         help="first simulated medium (the tail fit's settings were chosen on media 100–159: use e.g. 1000 "
         "for a held-out null set)",
     )
+    ap.add_argument(
+        "--single-scattering",
+        choices=("envelope", "field"),
+        default=None,
+        help="the simulated media's single scattering (default: the scenarios'; 'field': the focused speckle)",
+    )
+    ap.add_argument(
+        "--null-single-scattering",
+        action="store_true",
+        help="mix the single-scattering level into the null level (NullLevel(single_scattering=True), eq. B2)",
+    )
     ap.add_argument("--png", default="out/bench/pfa_pp.png")
     args = ap.parse_args()
     t0 = time.perf_counter()
+    medium = {"single_scattering": args.single_scattering} if args.single_scattering else None
+    opts = {"medium": medium, "single_scattering_null": args.null_single_scattering}
     with Progress() as progress:
         fps_ = args.frames_per_seed
-        null = {
-            "i.i.d. (paper S6)": iid_pfas(args.iid, progress, seed=1924 + args.seed0),
-            "2-D fog only": [
-                r["pfa"]
-                for r in scenario_maps(
-                    "sinking-cylinder", args.maps2d, False, progress, frames_per_seed=fps_, seed0=args.seed0
-                )
-            ],
-            "3-D fog only": [
-                r["pfa"]
-                for r in scenario_maps(
-                    "sinking-sphere", args.maps3d, False, progress, frames_per_seed=fps_, seed0=args.seed0
-                )
-            ],
+        fog = {
+            "2-D fog only": scenario_maps(
+                "sinking-cylinder", args.maps2d, False, progress, frames_per_seed=fps_, seed0=args.seed0, **opts
+            ),
+            "3-D fog only": scenario_maps(
+                "sinking-sphere", args.maps3d, False, progress, frames_per_seed=fps_, seed0=args.seed0, **opts
+            ),
         }
+        null = {"i.i.d. (paper S6)": iid_pfas(args.iid, progress, seed=1924 + args.seed0)}
+        null.update({label: [r["pfa"] for r in rows] for label, rows in fog.items()})
         power = {
             name: scenario_maps(
-                name, args.power, True, progress, frames_per_seed=args.power, frame_step=1, seed0=args.seed0
+                name, args.power, True, progress, frames_per_seed=args.power, frame_step=1, seed0=args.seed0, **opts
             )
             for name in ("sinking-cylinder", "sinking-sphere")
             if args.power > 0
@@ -189,6 +223,21 @@ def main() -> None:
             continue
         det = float(np.mean(np.asarray(pfas) < DEFAULT_MAX_PFA))
         print(f"{label:22s} " + " ".join(f"{r:<8.3f}" for r in rates(pfas)) + f"  {det:.3f} of {len(pfas)}")
+    print("\n95 % intervals (Clopper–Pearson) of the rate at α = 0.05 / 0.01, on independent units:")
+    for label, pfas in null.items():
+        if not pfas:
+            continue
+        parts = []
+        for a in (0.05, 0.01):
+            if label in fog:  # media, not frames, are independent
+                k, n = per_medium(fog[label], a)
+                unit = "media"
+            else:
+                k, n = int(np.sum(np.asarray(pfas) < a)), len(pfas)
+                unit = "maps"
+            lo, hi = interval(k, n)
+            parts.append(f"α={a:g}: {k}/{n} {unit} = {k / n:.3f} [{lo:.3f}, {hi:.3f}]")
+        print(f"  {label:20s} " + "; ".join(parts))
     print(f"\nDetection power on the default grid (whole record, no depth window), PFA < {DEFAULT_MAX_PFA:g}:")
     for name, rows in power.items():
         for tname in sorted({r["target"] for r in rows}):
