@@ -234,6 +234,18 @@ def main() -> None:
         help="settling range below the surface A:B with units, e.g. 8mm:9.5mm",
     )
     ap.add_argument("--gain", type=float, default=None, help="multiple-scattering background gain")
+    ap.add_argument(
+        "--depth-ls",
+        type=float,
+        default=None,
+        help="targets' centre depth below the surface in mean free paths (default: the scenario's, the paper's regime)",
+    )
+    ap.add_argument(
+        "--conventions",
+        choices=("paper", "legacy"),
+        default=None,
+        help="the scenario's conventions (default: paper; legacy: the earlier, easier rig, for comparison)",
+    )
     ap.add_argument("--integrate", type=int, default=1, help="tracker: search the mean of the last K γ-maps")
     ap.add_argument("--png", default=None, help="figure path (default out/tracking-<scenario>.png)")
     ap.add_argument("--json", default=None, help="per-frame rows and the summary as JSON")
@@ -243,6 +255,10 @@ def main() -> None:
         overrides["sink"] = args.sink
     if args.gain is not None:
         overrides["gain"] = args.gain
+    if args.depth_ls is not None:
+        overrides["depth_ls"] = args.depth_ls
+    if args.conventions is not None:
+        overrides["conventions"] = args.conventions
     res = run(args.scenario, not args.full, args.frames, args.z, args.spacing, overrides, args.integrate, args.roi)
     summary = summarise(res)
     png = args.png or f"out/tracking-{args.scenario}.png"
