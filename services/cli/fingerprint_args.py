@@ -62,6 +62,12 @@ def add_fingerprint_arguments(p: argparse.ArgumentParser) -> None:
         default=DEFAULT_MAX_PFA,
         help=f"report a detection only below this calibrated false-alarm probability (default {DEFAULT_MAX_PFA:g})",
     )
+    p.add_argument(
+        "--null-single-scattering",
+        action="store_true",
+        help="mix the single-scattering level into the null level (docs/design.md §4.9, eq. B2): for backgrounds "
+        "dominated by single scattering; costs power on targets that stand out of the confocal image",
+    )
     p.add_argument("--dataset", help="dataset name inside the UFF file(s) when there are several")
 
 
