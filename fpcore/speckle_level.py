@@ -104,11 +104,15 @@ def mix(
     if ok.sum() < 2:
         return diffuse, (1.0, 0.0)
     lg, ld, ls = np.log(gz[ok]), np.log(dz[ok]), np.log(np.maximum(sz[ok], 1e-300))
+    # A grid search (two parameters, a few hundred rows). Where a component sets the level, γ² follows
+    # it; elsewhere it lies above it: so a lies around the rows' median ratio to the diffuse level, and b
+    # between the smallest ratio to the single-scattering level and its median.
     a0 = float(np.median(lg - ld))
-    b0 = float(np.median((lg - ls)[sz[ok] > 0])) if np.any(sz[ok] > 0) else 0.0
-    best = (np.inf, a0, -np.inf)  # a grid search: two parameters, a few hundred rows
-    for la in a0 + np.linspace(-1.5, 1.5, 31):
-        for lb in [-np.inf, *(b0 + np.linspace(-3.0, 3.0, 61))]:
+    rb = (lg - ls)[sz[ok] > 0]
+    b_lo, b_hi = (float(rb.min()) - 1.0, float(np.median(rb)) + 1.0) if rb.size else (0.0, 0.0)
+    best = (np.inf, a0, -np.inf)
+    for la in a0 + np.linspace(-2.0, 2.0, 41):
+        for lb in [-np.inf, *np.linspace(b_lo, b_hi, 81)]:
             pred = np.maximum(la + ld, lb + ls)
             err = float(np.sum((lg - pred) ** 2))
             if err < best[0]:

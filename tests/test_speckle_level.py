@@ -119,3 +119,20 @@ def test_pipeline_option_makes_the_image_for_the_null_level_whether_published_or
     peak = without.grid.position(np.unravel_index(int(np.argmax(sig)), sig.shape))
     truth = np.asarray(frames[1].ground_truth.targets[0].position)
     assert np.linalg.norm(peak - truth) < 0.5e-3
+
+
+def test_mix_recovers_a_mixture_of_the_two_levels() -> None:
+    """γ² drawn as exponential speckle around max(2·diffuse, 3·speckle) — diffuse smooth, speckle strong
+    in the first rows (under a surface) and vanishing deeper: the fit gives back that level."""
+    from fpcore.speckle_level import mix
+
+    rng = np.random.default_rng(3)
+    nx, nz = 200, 60
+    z = np.arange(nz)
+    diffuse = np.broadcast_to(np.exp(-z / 40.0), (nx, nz)).copy()
+    speckle = np.broadcast_to(5.0 * np.exp(-z / 4.0), (nx, nz)) * rng.uniform(0.5, 1.5, (nx, nz))
+    truth = np.maximum(2.0 * diffuse, 3.0 * speckle)
+    g2 = truth * rng.exponential(1.0, (nx, nz))
+    level, shares = mix(g2, diffuse, speckle, np.ones((nx, nz), bool))
+    assert np.allclose(level.mean(axis=0), truth.mean(axis=0), rtol=0.12)
+    assert 0 < shares[1] < 0.5  # single scattering sets the level in the first rows only
