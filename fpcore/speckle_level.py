@@ -25,9 +25,9 @@ deeper — so the null level of a map is max(a P A, b Q), a, b fitted on the map
 
 The price: a target bright enough to stand out of the confocal image raises its own Q, and is tested
 against a point scatterer of its own brightness. Measured (docs/design.md §4.9): on the focused
-single-scattering speckle the mixture brings target-free maps from 35 % (2-D) and 50 % (3-D) reporting
-PFA < 0.01 to about 1 % and 3 %; on the legacy rig, where the targets stand 2–4× above the fog in the
-confocal image, their detections fall from 82 % to 48 %. So it is an option (`NullLevel(single_scattering=
+single-scattering speckle the mixture brings target-free maps from 35 % (2-D) and 55 % (3-D) reporting
+PFA < 0.01 to 0.7 % and 5 %; on the legacy rig, where the targets stand 2–4× above the fog in the
+confocal image, their detections fall from 82 % to 49 %. So it is an option (`NullLevel(single_scattering=
 True)`), for backgrounds dominated by single scattering.
 """
 
