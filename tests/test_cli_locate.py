@@ -151,16 +151,18 @@ def test_velocity_uses_the_motion_aware_fingerprint(tmp_path, capsys) -> None:
 
 
 def test_locate_with_the_single_scattering_null(files, tmp_path) -> None:
-    """--null-single-scattering (docs/design.md §4.9, eq. B2) runs end to end. The marker stands out of
-    the confocal image of this Born speckle and its fingerprint's gain is small (G ≈ 7): that null tests
-    it against a point scatterer as bright as itself, the option's documented price — its most
-    significant peak stays on it, with a larger PFA than under the default null level."""
+    """--null-single-scattering (docs/design.md §4.9, eq. B2) runs end to end. The marker is a small
+    cluster of Born points (fingerprint gain G ≈ 7) that stands out of the confocal image of a Born speckle:
+    exactly what that null describes ("single scatterers as bright as the image shows"), so its PFA rises
+    by orders of magnitude — the option's documented price — while it stays among the top peaks."""
     pfas = {}
     for flag in ([], ["--null-single-scattering"]):
         out = tmp_path / f"loc{len(flag)}.json"
         args = ["locate", str(files / "data.uff"), "--calibration", str(files / "cal.uff"), "--z", "8mm:24mm"]
-        assert main([*args, "--n-freq", "24", "--max-pfa", "1", *flag, "--json", str(out)]) == 0
-        dets = [f["detections"][0] for f in json.loads(out.read_text())["frames"]]
-        assert all(d["truth_error_m"] < 1e-3 for d in dets)
-        pfas[bool(flag)] = [d["pfa"] for d in dets]
-    assert all(b > a for a, b in zip(pfas[False], pfas[True], strict=True)), pfas
+        assert main([*args, "--n-freq", "24", "--max-pfa", "1", "--targets", "3", *flag, "--json", str(out)]) == 0
+        frames = json.loads(out.read_text())["frames"]
+        on = [[d for d in f["detections"] if d["truth_error_m"] < 1e-3] for f in frames]
+        assert all(len(m) == 1 for m in on)  # the marker is one of the three most significant peaks
+        pfas[bool(flag)] = [m[0]["pfa"] for m in on]
+    assert all(a < 1e-6 for a in pfas[False])
+    assert all(b > 1e3 * a for a, b in zip(pfas[False], pfas[True], strict=True)), pfas
