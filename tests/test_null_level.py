@@ -119,3 +119,24 @@ def test_aperture_factor_falls_as_the_fingerprint_leaves_the_array() -> None:
     assert edge < 0.5 * centre
     _, visible = level.level(acq, pw, fp, (1.0e-3, 0.5e-3))
     assert visible[grid.x.size // 2].all() and not visible.all()
+
+
+def test_per_frame_caches_follow_the_frame() -> None:
+    """Ê_R (eq. B1) and the confocal image are made once per frame and kept for its other fingerprints:
+    a new frame — even one whose array reuses a freed one's memory — gets its own, not the last one's."""
+    c0, freqs = 1540.0, np.linspace(1.8e6, 2.6e6, 33)
+    out = np.stack([np.linspace(-0.5, 0.5, 31), np.zeros(31)], axis=1)
+    inn = np.stack([np.linspace(-0.3, 0.3, 7), np.zeros(7)], axis=1)
+    grid = Grid.centred((0.0, 25e-3), (41, 41), 0.2e-3)
+    fp = point_fingerprint(freqs, out, inn, c0, np.array([0.0, 0.0, 25e-3]))
+    imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=(1.8e6, 2.6e6)))
+    level, power = fpcore.NullLevel(imager), NullPower(grid)
+    rng = np.random.default_rng(0)
+    for _ in range(6):
+        d = (rng.standard_normal(fp.data.shape) + 1j * rng.standard_normal(fp.data.shape)).astype(np.complex64)
+        pw = PlaneWaveData(d, freqs, out, inn, c0)
+        fresh = NullPower(grid).power(pw, fp)
+        assert np.allclose(power.power(pw, fp), fresh, rtol=1e-5, atol=1e-6 * fresh.max())
+        image = imager.confocal(pw)  # the kernel's threads sum in any order: equal within float32 rounding
+        assert np.allclose(level.confocal(pw), image, rtol=1e-5, atol=1e-6 * image.max())
+        del pw, d
