@@ -396,6 +396,7 @@ class PresumTransform:
         wr = w.view(w.real.dtype).reshape(nb, self.n_freq, self.n_out, self.n_in, 2)
         nt, nf = self.nthreads, self.n_freq
         nk = min(nf, 4 * nt)  # tasks: frequencies k, k + nk, … (a few per thread, handed out dynamically)
+        head = (wr, self._P, self._Q, self._ua, self._ub, self._go, self._gi)  # both paths' weights and geometry
         nx, ny = self._Hs.shape[2:4]
         nz = self.shape[-1]
         out = np.empty((nb, nx * ny, 2 * nz), dtype=np.float32)
@@ -410,13 +411,7 @@ class PresumTransform:
                 nk,
                 loops.exact_fused,
                 lambda c, k: (
-                    wr,
-                    self._P,
-                    self._Q,
-                    self._ua,
-                    self._ub,
-                    self._go,
-                    self._gi,
+                    *head,
                     self._glen,
                     self._lstart,
                     self._tab,
@@ -441,13 +436,7 @@ class PresumTransform:
             nk,
             loops.spread_depth,
             lambda c, k: (
-                wr,
-                self._P,
-                self._Q,
-                self._ua,
-                self._ub,
-                self._go,
-                self._gi,
+                *head,
                 self._gbase,
                 self._glen,
                 self._tab,
