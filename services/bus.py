@@ -79,6 +79,7 @@ __all__ = [
     "sample_publish_time",
     "stop_on_signals",
     "tune_malloc",
+    "sync_with",
     "wait_for_matching",
     "wait_for_token",
     "wait_until",
@@ -323,6 +324,20 @@ def wait_for_token(session: zenoh.Session, key: str, timeout: float) -> bool:
         if time.monotonic() >= deadline:
             return False
         time.sleep(0.1)
+
+
+def sync_with(session: zenoh.Session, key: str, timeout: float) -> int:
+    """Barrier: query every node's ``@sync`` queryable matching ``key``; returns how many replied.
+
+    A reply leaves the node after it has taken every message this session sent it before the query: a link
+    delivers in order, and a node's callbacks run in arrival order. A sender whose large payloads travel
+    through shared memory must wait for this before closing its session: zenoh drops, silently, a sample
+    whose sender's memory is gone before the receiver has mapped it (measured: a one-frame ``fp publish``
+    lost its frame at the recorder in 4 of 6 runs; none with the barrier)."""
+    replies = session.get(
+        key, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE, timeout=max(timeout, 0.05)
+    )
+    return sum(r.ok is not None for r in replies)
 
 
 def wait_for_matching(pub: zenoh.Publisher, timeout: float) -> bool:

@@ -12,6 +12,8 @@ keys of one rig from it, so no node, test or benchmark writes a key by hand:
   that ``**`` does not match (a recorder of ``fp/<rig>/**`` leaves them out);
 * liveliness tokens ``alive/<role>[/<name>]`` (:meth:`Keys.alive`; :meth:`Keys.alive_any` matches any
   name of a role);
+* every node's barrier queryable ``@sync/<role>[/<name>]`` (:meth:`Keys.sync`, :meth:`Keys.sync_any`): its
+  reply comes after the node has taken every message the asker sent it before (one link, in order);
 * ``**``: everything of the rig (what the recorder subscribes to); :data:`ALL_RIGS` is ``fp/**``.
 
 Rig ``"*"`` gives wildcard keys (``keys("*").rf == "fp/*/rf"``). Pure: no zenoh.
@@ -23,7 +25,7 @@ import re
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
-__all__ = ["ALL_RIGS", "DICTIONARY_OPS", "PREFIX", "TABLE", "TOPICS", "Keys", "Topic", "keys", "parse_key"]
+__all__ = ["ALL_RIGS", "DICTIONARY_OPS", "PREFIX", "TABLE", "TOPICS", "Keys", "Topic", "keys", "parse_key", "sync_of"]
 
 PREFIX = "fp"
 ALL_RIGS = f"{PREFIX}/**"
@@ -47,6 +49,7 @@ TABLE: dict[str, Topic] = {
     "ingest": Topic("ingest", None, "untrusted RFFrame payloads from any program, validated by the publisher"),
     "dictionary": Topic("dictionary", None, "queryable of the processor's fingerprint dictionary"),
     "alive": Topic("alive", None, "liveliness tokens alive/<role>[/<name>]"),
+    "sync": Topic("@sync", None, "barrier queryable of every node: @sync/<role>[/<name>] (services.bus.sync_with)"),
     # Sharded processing (docs/scaling.md): '@' chunks are verbatim, so ``fp/<rig>/**`` (a recorder) never sees them.
     "shard_assign": Topic("@shard/assign", None, "merger → one γ worker: the RFFrame it computes, as it came"),
     "shard_result": Topic("@shard/result", None, "γ worker → merger: one frame's results (services.nodes.worker)"),
@@ -143,6 +146,14 @@ class Keys:
         """Matches every token of a role on the rig, whatever the node's name: ``fp/<rig>/alive/<role>/**``."""
         return f"{self.alive(role)}/**"
 
+    def sync(self, role: str, name: str | None = None) -> str:
+        """Barrier queryable of a node, ``fp/<rig>/@sync/<role>[/<name>]`` (named like its token)."""
+        return sync_of(self.alive(role, name))
+
+    def sync_any(self, role: str) -> str:
+        """Matches the barrier of every node of a role on the rig: ``fp/<rig>/@sync/<role>/**``."""
+        return f"{self.sync(role)}/**"
+
     def shard_assign_to(self, worker: str) -> str:
         """Where the merger assigns frames to one γ worker: ``fp/<rig>/@shard/assign/<worker>``."""
         return f"{self.topic('shard_assign')}/{_plain_path(worker, 'worker')}"
@@ -155,6 +166,14 @@ class Keys:
         if topic is None:
             raise ValueError(f"schema_name: no topic for {name!r}")
         return self._k(topic)
+
+
+def sync_of(token_key: str) -> str:
+    """The barrier queryable of the node whose liveliness token is ``token_key`` (``…/alive/…`` → ``…/@sync/…``)."""
+    alive, sync = f"/{TABLE['alive'].chunk}/", f"/{TABLE['sync'].chunk}/"
+    if alive not in token_key:
+        raise ValueError(f"token_key: expected a liveliness key 'fp/<rig>/alive/<role>…', got {token_key!r}")
+    return token_key.replace(alive, sync, 1)
 
 
 def keys(rig: str) -> Keys:

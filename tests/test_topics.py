@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from services.messages import MESSAGE_TYPES
-from services.topics import ALL_RIGS, TABLE, TOPICS, keys, parse_key
+from services.topics import ALL_RIGS, TABLE, TOPICS, keys, parse_key, sync_of
 
 
 def test_every_message_type_has_one_topic() -> None:
@@ -41,6 +41,10 @@ def test_acks_dictionary_and_tokens() -> None:
     assert k.alive("processor", "p2") == "fp/r/alive/processor/p2"
     assert k.alive_any("processor") == "fp/r/alive/processor/**"
     assert keys("*").alive("recorder") == "fp/*/alive/recorder"
+    assert k.sync("processor", "p2") == sync_of(k.alive("processor", "p2")) == "fp/r/@sync/processor/p2"
+    assert k.sync_any("processor") == "fp/r/@sync/processor/**" and keys("*").sync("recorder") == "fp/*/@sync/recorder"
+    with pytest.raises(ValueError, match="token_key"):
+        sync_of("fp/r/rf")
     with pytest.raises(ValueError, match="role"):
         k.alive("a/b")
     assert parse_key(k.alive("viewer")) == ("r", "alive/viewer")

@@ -1,6 +1,7 @@
 """What every streaming node shares (docs/design.md §2, §7): start/close on an open zenoh session, use as
 a context manager, its liveliness token ``fp/<rig>/alive/<role>[/<name>]`` (declared last on start, so
-a peer that sees it also sees the node's subscriptions and queryables), its publishers (congestion
+a peer that sees it also sees the node's subscriptions and queryables), its barrier queryable
+``fp/<rig>/@sync/<role>[/<name>]`` (``services.bus.sync_with``), its publishers (congestion
 control BLOCK: nothing is discarded at the sender) and error reports on ``fp/<rig>/errors``.
 
 A subclass implements ``_open`` (declare inputs, start threads) and ``_shutdown`` (undeclare inputs,
@@ -18,7 +19,7 @@ import zenoh
 
 from services.bus import put_message
 from services.messages import ErrorReport, Latency, Message, Status
-from services.topics import Keys
+from services.topics import Keys, sync_of
 
 __all__ = ["Node", "start_warmed_thread"]
 
@@ -92,6 +93,7 @@ class Node:
         self.name = name or self.role
         self._pubs: dict[str, zenoh.Publisher] = {}
         self._token: Any = None
+        self._sync: Any = None
         self._started = False
         self.log = logging.getLogger(f"fp.{self.role}")
 
@@ -106,10 +108,19 @@ class Node:
     def token_key(self) -> str:
         return self.keys.alive(self.role, self.name)
 
+    @property
+    def sync_key(self) -> str:
+        """The node's barrier queryable (``services.bus.sync_with``), named like its token."""
+        return sync_of(self.token_key)
+
+    def _on_sync(self, query: zenoh.Query) -> None:
+        query.reply(self.sync_key, self.name.encode())
+
     def start(self) -> Node:
         if self._started:
             return self
         self._open()
+        self._sync = self.session.declare_queryable(self.sync_key, self._on_sync)
         self._token = self.session.liveliness().declare_token(self.token_key)
         self._started = True
         return self
@@ -122,6 +133,7 @@ class Node:
             self._shutdown()
         finally:
             self._token.undeclare()
+            self._sync.undeclare()
             for p in self._pubs.values():
                 p.undeclare()
             self._pubs = {}

@@ -141,7 +141,8 @@ class Processor(Node):
         self._server.declare()
 
     def _shutdown(self) -> None:
-        """Undeclare the callbacks first (no new work), stop the threads, publish a last status."""
+        """Undeclare the callbacks first (no new work), let the threads finish the frames received, publish a
+        last status."""
         self._sub.undeclare()
         self._server.undeclare()
         self._stop.set()
@@ -245,10 +246,14 @@ class Processor(Node):
 
     # -- processing ------------------------------------------------------------------------------------
     def _work(self) -> None:
-        while not self._stop.is_set():
+        """Process frames until stopped; on stop, the frames already received are still processed (the
+        subscription is closed first, so this ends): a frame the node took in is not dropped at shutdown."""
+        while True:
             try:
                 job = self._slot.get(timeout=0.1)
             except queue.Empty:
+                if self._stop.is_set():
+                    return
                 continue
             try:
                 self._process(job)

@@ -18,7 +18,9 @@ Pacing (``pace``):
 
 Before the first frame the publisher waits for the liveliness tokens of the nodes in ``wait_for``
 (``fp/<rig>/alive/processor``, the recorder's ``fp/*/alive/recorder``), so nothing is published to
-nobody; its own token is ``fp/<rig>/alive/publisher``. Ingest items are untrusted: they are decoded
+nobody; after the last frame it waits for the same nodes' barrier replies (``services.bus.sync_with``)
+before it closes, so a frame still in its shared memory is not lost; its own token is
+``fp/<rig>/alive/publisher``. Ingest items are untrusted: they are decoded
 and validated (shape, dtype, NaN, truncation, version, size) and refused with an ErrorReport on
 ``fp/<rig>/errors``; valid ones are forwarded as the same bytes.
 """
@@ -34,7 +36,7 @@ from typing import Any
 
 import zenoh
 
-from services.bus import wait_for_matching, wait_for_token
+from services.bus import sync_with, wait_for_matching, wait_for_token
 from services.messages import RFFrame
 from services.nodes.base import Node
 from services.sources import Item, Source
@@ -168,6 +170,9 @@ class Publisher(Node):
             return Keys("*").alive("recorder")
         raise ValueError(f"--wait-for: expected processor and/or recorder, got {node!r}")
 
+    def _sync_key(self, node: str) -> str:
+        return self.keys.sync_any("processor") if node == "processor" else Keys("*").sync("recorder")
+
     def _validate(self, item: Item) -> Item | None:
         """Decode an untrusted payload; refuse it with an ErrorReport, or return it with a fresh header."""
         try:
@@ -201,9 +206,12 @@ class Publisher(Node):
         rf_pub, acks = self._pubs["rf"], self._acks
         t_start = time.time()
         t_first: float | None = None
+        seen: list[str] = []
         try:
             for node in self.wait_for:
-                if not wait_for_token(s, self._token_key(node), self.wait_timeout):
+                if wait_for_token(s, self._token_key(node), self.wait_timeout):
+                    seen.append(node)
+                else:
                     if self.pace == "ack" and node == "processor":
                         raise TimeoutError(
                             f"no processor on fp/{self.rig} after {self.wait_timeout:.0f} s (--pace ack needs one)"
@@ -246,6 +254,9 @@ class Publisher(Node):
                     self.on_publish(item, t)
             if acks is not None:
                 acks.wait_below(1, self.ack_timeout, stop)
+            for node in seen:  # the last frames may still be in shared memory: see services.bus.sync_with
+                if self.published and not sync_with(s, self._sync_key(node), self.wait_timeout):
+                    log.warning("the %s on fp/%s did not answer the closing barrier", node, self.rig)
         finally:
             self.close()
         t_end = time.time()
