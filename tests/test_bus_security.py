@@ -176,7 +176,7 @@ def test_only_authenticated_and_authorised_sessions_reach_the_processor(secrets,
                 with open_session(client_bus(secrets / "publisher.json5", port)) as s_pub:
                     src = AcquisitionSource(data["frames"][:2])
                     summary = Publisher(s_pub, rig, src, pace="ack", wait_timeout=20).run()
-                assert summary["published"] == 2 and summary["acked"] == 2
+                assert summary["published"] == 2 and summary["acked"] == 2 and summary["synced"] == 1  # its barrier
                 assert node.frames_processed == 2 and node.rejected == 0 and node.failed == 0
                 deadline = time.monotonic() + 10
                 while time.monotonic() < deadline and len(seen) < 2:

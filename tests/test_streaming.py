@@ -254,7 +254,8 @@ def test_a_publisher_that_ends_at_once_loses_no_frame(data, tmp_path) -> None:
             cmd = [sys.executable, "-m", "services.cli", *pub, "--connect", f"tcp/127.0.0.1:{port}", *shm]
             done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=60)
             assert done.returncode == 0, done.stderr[-2000:]
-            assert json.loads(done.stdout.strip().splitlines()[-1])["published"] == 1
+            summary = json.loads(done.stdout.strip().splitlines()[-1])
+            assert summary["published"] == 1 and summary["synced"] == 1, done.stderr[-2000:]
     finally:
         rec.stop()
     rf = [m for _, ch, m in iter_raw(mcap_path) if ch.topic == keys(rig).rf]

@@ -160,6 +160,7 @@ class Publisher(Node):
         self.rejected = 0
         self.bytes = 0
         self.publish_times: dict[int, float] = {}
+        self.synced = 0  # awaited nodes that answered the closing barrier
         self._run_stop = threading.Event()
         self._acks: AckTracker | None = None
 
@@ -254,8 +255,10 @@ class Publisher(Node):
                     self.on_publish(item, t)
             if acks is not None:
                 acks.wait_below(1, self.ack_timeout, stop)
-            for node in seen:  # the last frames may still be in shared memory: see services.bus.sync_with
-                if self.published and not sync_with(s, self._sync_key(node), self.wait_timeout):
+            for node in seen if self.published else ():  # the last frames may still be in shared memory
+                if sync_with(s, self._sync_key(node), self.wait_timeout):  # (services.bus.sync_with)
+                    self.synced += 1
+                else:
                     log.warning("the %s on fp/%s did not answer the closing barrier", node, self.rig)
         finally:
             self.close()
@@ -266,6 +269,7 @@ class Publisher(Node):
             "rejected": self.rejected,
             "bytes": self.bytes,
             "acked": None if acks is None else acks.acked,
+            "synced": self.synced,
             "ack_timeouts": None if acks is None else acks.timed_out,
             "wall_s": t_end - t_start,
             "frame_rate_hz": self.published / span if span > 0 else 0.0,
