@@ -323,7 +323,7 @@ class PresumTransform:
                 *_sym_tables(theta[0], steps[0] * k * grid.spacing[0], nx),
             )
             lmax = int(glen.max())
-            self._T = np.zeros((nt, mx * ny * 2 * lmax), dtype=np.float32)
+            self._T = np.zeros((nt, mx * min(2 * loops.SLAB_Q, ny) * 2 * lmax), dtype=np.float32)  # a slab
             self._accs = np.zeros((nt, 2, 4, max(_BLOCK, 2 * lmax)), dtype=np.float32)
             self._gsize = mx * my * 2 * lmax  # one frequency's block of lattice rows
             self._Hs = np.zeros((nt, 1, nx, ny, 2, nglob), dtype=np.float32)

@@ -45,6 +45,7 @@ TAB_BITS = 11
 N_TABLE = 1 << TAB_BITS  # kernel table resolution per cell (linear interpolation error ≈ 1e-6)
 FRAC = 40  # fractional bits of the fixed-point depth positions
 u64 = np.uint64  # every index of the kernels (no negative-index wraparound code)
+SLAB_Q = 4  # y outputs q per slab of `lateral_sym` (≤ 2·SLAB_Q rows y; a multiple of 4, `accumulate_tile`'s)
 
 
 def _fallback_cache_dir() -> str | None:
@@ -416,10 +417,14 @@ if nb is not None:
         ls + l (mod nglob)]: Σ_m e^{iθ_m p} G_m = e^{iθ_c p} Σ_m e^{iθ'_m p} G_m with θ' = θ − θ_c symmetric
         about the lattice's centre θ_c, so the pairs m, M−1−m share cos(θ'q) and sin(θ'q) up to sign (a
         butterfly, then half the products); p = ±q even/odd as before. C (Q, (M+1)//2) = cos θ'q,
-        S (Q, M//2) = sin θ'q, E (Q, 2) = (cos, sin) θ_c q. Columns in blocks of ~blk floats (kept in L2), four q
-        at a time (`accumulate_tile`; accC, accS (4, ≥ blk)). Only the pairs that hold data are summed: occ
-        (M_y·M_x) marks the occupied groups (a fingerprint's angular support leaves most of them empty).
-        G and T are overwritten."""
+        S (Q, M//2) = sin θ'q, E (Q, 2) = (cos, sin) θ_c q. The y outputs go SLAB_Q q at a time (≤ 2·SLAB_Q rows
+        y = N_y//2 ± q): the y sums of every column m_x into a slab T[m_x, y-slot, re/im, l] (L2-sized), then
+        the x sums of that slab into H, so the y pass's output never leaves the core's cache (a whole T[m_x, y]
+        per frequency did: 4.5 MB a thread on the full-size frame; a column block of G is re-read from L3 once
+        per slab instead). Columns in blocks of ~blk floats, four q at a time (`accumulate_tile`; accC, accS
+        (4, ≥ max(blk, 2L))). Only the pairs that hold data are summed: occ (M_y·M_x) marks the occupied groups
+        (a fingerprint's angular support leaves most of them empty).
+        G and T (≥ M_x·min(2·SLAB_Q, N_y)·2L) are overwritten."""
         L2 = L + L
         uL = u64(L)
         nglob = u64(H.shape[3])
@@ -428,47 +433,83 @@ if nb is not None:
         xlo, xhi = pair_span(occ, mx, mx, 1, 0, 0)
         if xlo >= xhi:
             return  # no data at this frequency
-        # y: rows m_y of n = M_x·2L → T[m_x, y, re/im, l] for the columns m_x that the x pass reads
-        for axis in range(2):
-            src = G if axis == 0 else T
-            M = my if axis == 0 else mx
-            nu = mx if axis == 0 else ny  # units of 2L columns per row
-            npos = ny if axis == 0 else nx
-            C = Cy if axis == 0 else Cx
-            S = Sy if axis == 0 else Sx
-            E = Ey if axis == 0 else Ex
-            n = nu * L2
-            ylo, yhi = pair_span(occ, mx, my, 0, 0, mx) if axis == 0 else (xlo, xhi)
-            butterfly(src, M, n, ylo, yhi)
-            ub = max(1, blk // L2)
-            cp = npos // 2
-            u0, u1 = (xlo, mx - xlo) if axis == 0 else (0, ny)
-            for a0 in range(u0, u1, ub):
+        ylo, yhi = pair_span(occ, mx, my, 0, 0, mx)
+        butterfly(G, my, mx * L2, ylo, yhi)
+        ub = max(1, blk // L2)  # units of 2L columns per block
+        u1 = mx - xlo  # the columns m_x that the x pass reads
+        nblk = (u1 - xlo + ub - 1) // ub
+        span = np.empty((nblk, 2), np.int64)  # occupied pairs of rows m_y per column block
+        for bi in range(nblk):
+            a0 = xlo + bi * ub
+            span[bi, 0], span[bi, 1] = pair_span(occ, mx, my, 0, a0, min(u1, a0 + ub))
+        ys = np.empty(2 * SLAB_Q, np.int64)
+        cy, cx = ny // 2, nx // 2
+        nG = mx * L2
+        nq = Cy.shape[0]
+        for q0 in range(0, nq, SLAB_Q):
+            q1 = min(q0 + SLAB_Q, nq)
+            ns = 0  # slots of the slab: y = cy ± q, q0 ≤ q < q1, in `emit`'s order (+q, then −q)
+            for q in range(q0, q1):
+                if cy + q < ny:
+                    ys[ns] = cy + q
+                    ns += 1
+                if q > 0 and cy - q >= 0:
+                    ys[ns] = cy - q
+                    ns += 1
+            if ns == 0:
+                continue
+            nT = ns * L2
+            # y: rows m_y of G → slab T[m_x, slot, re/im, l]; a column block of G stays in L2 for all its q
+            for bi in range(nblk):
+                a0 = xlo + bi * ub
                 a1 = min(u1, a0 + ub)
                 width = (a1 - a0) * L2
-                jlo, jhi = pair_span(occ, mx, my, 0, a0, a1) if axis == 0 else (xlo, xhi)
-                for q in range(C.shape[0]):
-                    k = q % 4
-                    if k == 0:  # cosine rows j < (M+1)//2, sine rows M−1−j, j < M//2 (`butterfly`)
-                        accumulate_tile(src, a0 * L2, width, n, 0, 1, jlo, min(jhi, (M + 1) // 2), C, q, accC)
-                        accumulate_tile(src, a0 * L2, width, n, M - 1, -1, jlo, min(jhi, M // 2), S, q, accS)
+                jlo, jhi = span[bi, 0], span[bi, 1]
+                s = 0
+                for q in range(q0, q1):
+                    k = (q - q0) % 4
+                    if k == 0:
+                        accumulate_tile(G, a0 * L2, width, nG, 0, 1, jlo, min(jhi, (my + 1) // 2), Cy, q, accC)
+                        accumulate_tile(G, a0 * L2, width, nG, my - 1, -1, jlo, min(jhi, my // 2), Sy, q, accS)
+                    vp, vm = cy + q < ny, q > 0 and cy - q >= 0
+                    if not (vp or vm):
+                        continue
                     aC = accC[k]
                     aS = accS[k]
-                    ec = E[q, 0]
-                    es = E[q, 1]
-                    pp, pm = cp + q, cp - q  # outputs p = ±q about the centre
-                    vp, vm = pp < npos, q > 0 and pm >= 0
+                    ec = Ey[q, 0]
+                    es = Ey[q, 1]
+                    sm = s + 1 if vp and vm else s
                     for a in range(a0, a1):
                         u = u64(a - a0) * u64(L2)
                         cr, ci, sr, si = aC[u : u + uL], aC[u + uL : u + L2], aS[u : u + uL], aS[u + uL : u + L2]
-                        if axis == 0:
-                            dp = u64(a * ny + (pp if vp else pm)) * u64(L2)
-                            dm = u64(a * ny + pm) * u64(L2)
-                            Tp, Tm = T[dp : dp + L2], T[dm : dm + L2]
-                            emit(cr, ci, sr, si, Tp[:uL], Tp[uL:], Tm[:uL], Tm[uL:], ec, es, vp, vm, False)
-                        elif not wrap:
-                            dp = u64((pp if vp else pm) * ny + a) * (nglob + nglob) + ls
-                            dm = u64(pm * ny + a) * (nglob + nglob) + ls
+                        dp = u64(a * ns + s) * u64(L2)
+                        dm = u64(a * ns + sm) * u64(L2)
+                        Tp, Tm = T[dp : dp + L2], T[dm : dm + L2]
+                        emit(cr, ci, sr, si, Tp[:uL], Tp[uL:], Tm[:uL], Tm[uL:], ec, es, vp, vm, False)
+                    s = sm + 1
+            # x: rows m_x of the slab (n = slots·2L) → H[x, y, re/im, ls + l]
+            butterfly(T, mx, nT, xlo, xhi)
+            for b0 in range(0, ns, ub):
+                b1 = min(ns, b0 + ub)
+                width = (b1 - b0) * L2
+                for q in range(Cx.shape[0]):
+                    k = q % 4
+                    if k == 0:  # cosine rows j < (M+1)//2, sine rows M−1−j, j < M//2 (`butterfly`)
+                        accumulate_tile(T, b0 * L2, width, nT, 0, 1, xlo, min(xhi, (mx + 1) // 2), Cx, q, accC)
+                        accumulate_tile(T, b0 * L2, width, nT, mx - 1, -1, xlo, min(xhi, mx // 2), Sx, q, accS)
+                    aC = accC[k]
+                    aS = accS[k]
+                    ec = Ex[q, 0]
+                    es = Ex[q, 1]
+                    pp, pm = cx + q, cx - q  # outputs p = ±q about the centre
+                    vp, vm = pp < nx, q > 0 and pm >= 0
+                    for b in range(b0, b1):
+                        u = u64(b - b0) * u64(L2)
+                        y = ys[b]
+                        cr, ci, sr, si = aC[u : u + uL], aC[u + uL : u + L2], aS[u : u + uL], aS[u + uL : u + L2]
+                        if not wrap:
+                            dp = u64((pp if vp else pm) * ny + y) * (nglob + nglob) + ls
+                            dm = u64(pm * ny + y) * (nglob + nglob) + ls
                             Hp, Hm = Hf[dp : dp + nglob + uL], Hf[dm : dm + nglob + uL]
                             emit(cr, ci, sr, si, Hp[:uL], Hp[nglob:], Hm[:uL], Hm[nglob:], ec, es, vp, vm, True)
                         else:  # the band wraps modulo nglob
@@ -476,7 +517,7 @@ if nb is not None:
                                 if not (vp if sgn == 0 else vm):
                                     continue
                                 sv = np.float32(1 - 2 * sgn)
-                                dst = u64((pp if sgn == 0 else pm) * ny + a) * (nglob + nglob)
+                                dst = u64((pp if sgn == 0 else pm) * ny + y) * (nglob + nglob)
                                 for t in range(uL):
                                     rr = aC[u + t] - sv * aS[u + uL + t]
                                     ii = aC[u + uL + t] + sv * aS[u + t]
