@@ -76,8 +76,9 @@ _SUSPENSION_ROI_Z = (20e-3, 31e-3)
 #: The two sets of conventions of the sinking scenarios. "paper" (default): the paper's depth convention
 #: (a target attenuated at its centre, main text eq. (1)), ℓ_s(f) by the Rayleigh law of Supplementary S1
 #: (the ballistic echo filtered by exp(−2z/ℓ_ext(f))), the beads' single scattering inside the Gaussian field
-#: (``single_scattering="field"`` makes it a focused speckle: below), a reciprocal background with coherent backscattering, no gain on the background level, and every
-#: calibration once in water at a fixed position independent of the truth (the paper's (0, 0, 25) mm).
+#: (``single_scattering="field"`` makes it a focused speckle: below), a reciprocal background with coherent
+#: backscattering, no gain on the background level, and every calibration once in water at a fixed
+#: position independent of the truth (the paper's (0, 0, 25) mm).
 #: "legacy" (for comparison only): the conventions before that change — attenuation from the front face,
 #: a non-dispersive ℓ_s, all scattering orders in one Gaussian field, a per-scenario gain, calibrations at
 #: each target's initial (true) position, and the shallower depths (docs/design.md §6.4).
