@@ -17,7 +17,7 @@ from typing import Any, ClassVar
 
 import zenoh
 
-from services.bus import put_message
+from services.bus import put_message, sync_with
 from services.messages import ErrorReport, Latency, Message, Status
 from services.topics import Keys, sync_of
 
@@ -115,6 +115,11 @@ class Node:
 
     def _on_sync(self, query: zenoh.Query) -> None:
         query.reply(self.sync_key, self.name.encode())
+
+    def sync_recorders(self, timeout: float = 2.0) -> int:
+        """Before a node that publishes outputs closes: wait until every recorder has taken them (the
+        recorders' barrier, ``services.bus.sync_with``); returns how many answered (0 at once if none)."""
+        return sync_with(self.session, Keys("*").sync("recorder"), timeout)
 
     def start(self) -> Node:
         if self._started:

@@ -217,6 +217,7 @@ class Merger(Node):
             log.warning("stopped with %d frames not merged (counted as pending): %s", len(pending), pending[:20])
         try:
             self._publish_status()
+            self.sync_recorders()  # the last outputs reach the recorders before the session closes
         except Exception:
             pass
 

@@ -151,6 +151,7 @@ class Processor(Node):
         self._server.join(timeout=30)
         try:
             self._publish_status()
+            self.sync_recorders()  # the last outputs reach the recorders before the session closes
         except Exception:  # the session may already be closing
             pass
 
