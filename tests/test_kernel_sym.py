@@ -49,7 +49,9 @@ def test_exact_path_with_empty_directions_matches_direct_sum(offset: float) -> N
     scale = np.abs(ref).max()
     assert np.abs(got - ref).max() < 1e-4 * scale
     assert np.abs(got - nufft(w)).max() < 1e-4 * scale
-    assert np.abs(exact(np.stack([w, 2 * w]))[1] - 2 * got).max() < 1e-6 * scale  # rows: one map each
+    # rows: one map each. Float32 rounding only: threads take frequencies as they free up, so two calls add
+    # their per-thread partial maps in different orders (measured up to 1.05e-6 of the maximum under load)
+    assert np.abs(exact(np.stack([w, 2 * w]))[1] - 2 * got).max() < 1e-5 * scale
     assert not np.any(exact(np.zeros_like(w)))  # no sample at all: an empty map
 
 

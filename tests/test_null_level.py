@@ -27,12 +27,10 @@ def test_envelope_spectrum_is_the_spectrum_of_the_energy() -> None:
     assert np.allclose(e, direct, rtol=1e-3, atol=1e-3 * np.abs(direct).max())
 
 
-def test_null_power_peaks_where_the_echo_energy_meets_the_fingerprint() -> None:
+def test_null_power_peaks_where_the_echo_energy_meets_the_fingerprint(point_rig) -> None:
     """Point fingerprint at r0; data = a point echo at r1: P(r) (eq. B1) peaks at r1 — the delay of the
     virtual shift has the sign of the γ kernel."""
-    c0, freqs = 1540.0, np.linspace(1.8e6, 2.6e6, 33)
-    out = np.stack([np.linspace(-0.5, 0.5, 31), np.zeros(31)], axis=1)
-    inn = np.stack([np.linspace(-0.3, 0.3, 7), np.zeros(7)], axis=1)
+    c0, freqs, out, inn = point_rig
     grid = Grid.centred((0.0, 25e-3), (61, 61), 0.2e-3)
     r0, r1 = np.array([0.0, 0.0, 25e-3]), np.array([1.0e-3, 0.0, 26.5e-3])
     fp = point_fingerprint(freqs, out, inn, c0, r0)
@@ -121,12 +119,10 @@ def test_aperture_factor_falls_as_the_fingerprint_leaves_the_array() -> None:
     assert visible[grid.x.size // 2].all() and not visible.all()
 
 
-def test_per_frame_caches_follow_the_frame() -> None:
+def test_per_frame_caches_follow_the_frame(point_rig) -> None:
     """Ê_R (eq. B1) and the confocal image are made once per frame and kept for its other fingerprints:
     a new frame — even one whose array reuses a freed one's memory — gets its own, not the last one's."""
-    c0, freqs = 1540.0, np.linspace(1.8e6, 2.6e6, 33)
-    out = np.stack([np.linspace(-0.5, 0.5, 31), np.zeros(31)], axis=1)
-    inn = np.stack([np.linspace(-0.3, 0.3, 7), np.zeros(7)], axis=1)
+    c0, freqs, out, inn = point_rig
     grid = Grid.centred((0.0, 25e-3), (41, 41), 0.2e-3)
     fp = point_fingerprint(freqs, out, inn, c0, np.array([0.0, 0.0, 25e-3]))
     imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=(1.8e6, 2.6e6)))

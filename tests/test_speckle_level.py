@@ -41,12 +41,10 @@ def test_compact_keeps_the_energy_and_the_centre() -> None:
     assert box[c] == ker[20, 30]
 
 
-def test_the_level_of_one_point_scatterer_is_its_gamma_map() -> None:
+def test_the_level_of_one_point_scatterer_is_its_gamma_map(point_rig) -> None:
     """Eq. (B2) with ρ = one point at node n1: Q(r) = |h(r − r1)|², which is γ²(r) of that point's echo
     (same spectrum), up to a constant — the point response's definition and centring, checked."""
-    c0, freqs = 1540.0, np.linspace(1.8e6, 2.6e6, 33)
-    out = np.stack([np.linspace(-0.5, 0.5, 31), np.zeros(31)], axis=1)
-    inn = np.stack([np.linspace(-0.3, 0.3, 7), np.zeros(7)], axis=1)
+    c0, freqs, out, inn = point_rig
     grid = Grid.centred((0.0, 25e-3), (61, 81), 0.2e-3)
     fp = point_fingerprint(freqs, out, inn, c0, np.array([0.0, 0.0, 25e-3]))
     imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=(1.8e6, 2.6e6)))

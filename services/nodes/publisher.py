@@ -40,7 +40,7 @@ from services.bus import sync_with, wait_for_matching, wait_for_token
 from services.messages import RFFrame
 from services.nodes.base import Node
 from services.sources import Item, Source
-from services.topics import Keys
+from services.topics import Keys, sync_of
 from services.wire import DEFAULT_MAX_BYTES, WireError, decode, decode_header, error_report, extract_header
 
 __all__ = ["PACES", "AckTracker", "Publisher"]
@@ -172,7 +172,7 @@ class Publisher(Node):
         raise ValueError(f"--wait-for: expected processor and/or recorder, got {node!r}")
 
     def _sync_key(self, node: str) -> str:
-        return self.keys.sync_any("processor") if node == "processor" else Keys("*").sync("recorder")
+        return sync_of(self._token_key(node))  # the barrier of the nodes whose tokens it waited for
 
     def _validate(self, item: Item) -> Item | None:
         """Decode an untrusted payload; refuse it with an ErrorReport, or return it with a fresh header."""
