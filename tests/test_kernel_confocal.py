@@ -13,7 +13,7 @@ pytest.importorskip("numba")
 from fpcore import kernel_presum_loops as loops  # noqa: E402
 from fpcore.grid import Grid  # noqa: E402
 from fpcore.kernel import direct_sum, wavevectors  # noqa: E402
-from fpcore.kernel_presum import PresumTransform  # noqa: E402
+from fpcore.kernel_presum import PresumTransform, _pad  # noqa: E402
 
 C0 = 1540.0
 DS = 0.029
@@ -58,3 +58,13 @@ def test_2d_exact_path_matches_direct_sum(shape: tuple[int, int]) -> None:
     sines = [np.stack([s, np.zeros_like(s)], 1) for s in (so, si)]
     grid = Grid.centred((0.5e-3, 12e-3), shape, 0.08e-3)
     assert _error(grid, *sines, sparse=False) < 1e-4
+
+
+def test_accumulator_rows_are_not_4k_apart() -> None:
+    """The tile accumulators' row length (`kernel_presum._pad`): at least what is asked, whole cache lines, and none
+    of 8 rows starts within 48 floats of a multiple of 4 KiB from another (store-to-load aliasing, L1 sets)."""
+    for n in [1, 186, 512, 1000, 1024, 1030, 1536, 2000, 2048, 2090, 4096, 5000]:
+        padded = _pad(n)
+        assert n <= padded < n + 1024 and padded % 16 == 0
+        assert all(48 <= k * padded % 1024 <= 1024 - 48 for k in range(1, 8))
+    assert _pad(2048) == 2096
