@@ -94,6 +94,45 @@ def _inline(fn: Callable[..., Any]) -> Callable[..., Any]:
 
 
 if nb is not None:
+    _ir = importlib.import_module("llvmlite.ir")
+    _types = importlib.import_module("numba.core.types")
+
+    @importlib.import_module("numba.extending").intrinsic
+    def taps8(typingctx, G, dst, dim, tab, dtab, k0, r, cr, ci):  # pragma: no cover
+        """G[dst : dst + 8] += cr·v and G[dim : dim + 8] += ci·v, v = tab[k0 : k0 + 8] + r·dtab[k0 : k0 + 8]: one
+        sample's 8 kernel taps (re and im) as three 8-float vector FMAs, fused as the scalar loop's. LLVM leaves
+        that loop scalar (8 runtime iterations, two stores into one array): ~70 instructions a sample. G, tab,
+        dtab: float32 arrays; the pieces must not overlap (|dim − dst| ≥ 8)."""
+        f32 = _types.float32
+        if not all(isinstance(a, _types.Array) and a.dtype == f32 for a in (G, tab, dtab)):
+            return None
+        sig = _types.void(G, dst, dim, tab, dtab, k0, f32, f32, f32)
+
+        def codegen(context, builder, signature, args):
+            g, d_re, d_im, t, dt, k, rv, crv, civ = args
+            v8 = _ir.VectorType(_ir.FloatType(), 8)
+            fma = builder.module.declare_intrinsic("llvm.fma.v8f32", (), _ir.FunctionType(v8, [v8, v8, v8]))
+
+            def at(arr, ty, idx):  # a vector pointer to arr[idx]
+                data = context.make_array(ty)(context, builder, arr).data
+                return builder.bitcast(builder.gep(data, [idx]), v8.as_pointer())
+
+            def splat(x):  # x in all 8 lanes
+                one = builder.insert_element(_ir.Constant(v8, None), x, _ir.IntType(32)(0))
+                return builder.shuffle_vector(
+                    one, _ir.Constant(v8, None), _ir.Constant(_ir.VectorType(_ir.IntType(32), 8), [0] * 8)
+                )
+
+            gty, tty, dty = signature.args[0], signature.args[3], signature.args[4]
+            v = builder.call(
+                fma, [splat(rv), builder.load(at(dt, dty, k), align=4), builder.load(at(t, tty, k), align=4)]
+            )
+            for d, c in ((d_re, crv), (d_im, civ)):
+                p = at(g, gty, d)
+                builder.store(builder.call(fma, [splat(c), v, builder.load(p, align=4)]), p, align=4)
+            return context.get_dummy_value()
+
+        return sig, codegen
 
     @_inline
     def spread_freq(w, P, Q, ua, ub, go, gi, L, tab, dtab, G, b0, bstride, f, occ):  # pragma: no cover
@@ -103,7 +142,8 @@ if nb is not None:
         w (Nb, Nf, No, Ni, 2), P (Nf, No, 2), Q (Nf, Ni, 2): re/im pairs; g = go[o] + gi[i], the lattice
         group (m_y·M_x + m_x). u = ua[f, o] + ub[f, i] ≥ 0, fixed point with FRAC fractional bits: position
         from the band's first bin, ⌊u⌋ the first of the 8 taps. Per (f, o), vectorizable passes over i make
-        the ramp, the positions (shared by the Nb weight vectors) and the strengths; each sample adds 8 taps.
+        the ramp, the positions (shared by the Nb weight vectors) and the strengths; each sample adds 8 taps
+        (`taps8`: tab and dtab have 8 columns).
         Zero weights (outside a fingerprint's angular support) are skipped; occ[b, g] = 1 marks the groups
         that received a non-zero one (occ: (Nb, M_x·M_y) uint8, not cleared here)."""
         nb, _, no, ni, _ = w.shape
@@ -155,10 +195,7 @@ if nb is not None:
                     k0 = u64(kb[i])
                     dst = bb + u64(off[i])
                     dim = dst + uL
-                    for t in range(u64(ntap)):
-                        v = tabf[k0 + t] + r * dtabf[k0 + t]
-                        G[dst + t] += cr * v
-                        G[dim + t] += ci * v
+                    taps8(G, dst, dim, tabf, dtabf, k0, r, cr, ci)
 
     @_jit
     def spread_depth(w, P, Q, ua, ub, go, gi, gbase, glen, tab, dtab, G, f0, fstep):  # pragma: no cover
