@@ -53,13 +53,13 @@ from . import kernel_presum_loops as loops
 from .geometry import cosines
 from .grid import Grid
 from .kernel import default_threads
-from .kernel_presum_loops import FRAC, N_TABLE, pool, split, u64
+from .kernel_presum_loops import FRAC, N_TABLE, TAPS, pool, split, u64
 
 __all__ = ["PresumTransform", "lattice"]
 
 _REL_TOL = 1e-9
 _MAX_LATTICE = 1 << 14  # largest lattice extent (in steps δs) accepted per axis
-_TAPS = 8  # taps stored per sample: one AVX vector; the kernel's width is ≤ 8
+_TAPS = TAPS  # taps stored per sample: one AVX vector (`loops.taps8`); the kernel's width is ≤ 8
 _BLOCK = 2048  # columns (floats) of the lattice rows transformed together by the exact lateral DFTs (L2-sized)
 
 

@@ -43,6 +43,7 @@ except ImportError:  # pragma: no cover - depends on the environment
 # fixed-point depth positions and the kernel table, as the plan (fpcore.kernel_presum) builds them
 TAB_BITS = 11
 N_TABLE = 1 << TAB_BITS  # kernel table resolution per cell (linear interpolation error ≈ 1e-6)
+TAPS = 8  # kernel taps stored per sample: `taps8` adds them as one 8-float vector, so the tables have 8 columns
 FRAC = 40  # fractional bits of the fixed-point depth positions
 u64 = np.uint64  # every index of the kernels (no negative-index wraparound code)
 SLAB_Q = 4  # y outputs q per slab of `lateral_sym` (≤ 2·SLAB_Q rows y; a multiple of 4, `accumulate_tile`'s)
