@@ -19,13 +19,19 @@ for the maximum, Worsley et al. 1996):
 1. **Local scale** (`NullModel.power`): γ² is first divided by a physical null level when one is given
    (fpcore.background: the data's energy in the fingerprint's time support × the aperture factor);
    what remains is averaged over a training window of ± `window_cells` resolution cells around each
-   node (± 6 lateral × ± 3 axial), censoring nodes that stand out (T > `censor` against a robust
-   per-depth median) together with a guard region of one resolution cell: a censored cell-averaging
-   CFAR. Optionally (`greatest_of`, off by default) the level is the greater of the window's mean and
-   the means of its two halves along each lateral axis (GO-CFAR, Hansen & Sawyers 1980), so that a
-   level edge — the border of the insonified region — is not averaged into its bright side; it halves
-   the false alarms on the 2-D diffusion fog but loses targets whose own sidelobes fill one half
-   (docs/design.md §4.9). Nodes outside `visible` neither train nor are searched.
+   node (`WINDOW_CELLS`: ± 1 axial cell, ± 10 lateral cells in 2-D, ± 2 in 3-D), less a guard box of
+   ± 0.5 cell around the node itself (`cut_guard`: the cell under test does not train its own level),
+   censoring nodes that stand out against the window's uncensored mean (T > `censor` = 30: another
+   strong target, not the background's own bright grains) together with a guard region of one
+   resolution cell: a censored cell-averaging CFAR. The window is compact in depth because the level
+   changes fastest there (the beads' single-scattering peak a millimetre under the suspension's surface)
+   and narrow enough laterally to follow the single-scattering level's lateral concentration, which the
+   physical level does not carry (docs/design.md §4.9, measured). Optionally (`greatest_of`, off by
+   default) the level is the greater of the window's mean and the means of its two halves along each
+   lateral axis (GO-CFAR, Hansen & Sawyers 1980), so that a level edge — the border of the insonified
+   region — is not averaged into its bright side; it halved the false alarms on the 2-D diffusion fog
+   under the previous window but loses targets whose own sidelobes fill one half (docs/design.md §4.9).
+   Nodes outside `visible` neither train nor are searched.
 2. **Statistic**: T(r) = γ²(r)/γ_M²(r), exponentially distributed (χ²₂/2) under the null. The level is
    estimated from n(r) independent training cells, counted per node (a node's own guard region,
    ± `own_guard` cells, not counted as missing), so the tail is the CA-CFAR law (1 + T/n)^(−n) = e^{−S},
@@ -66,6 +72,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from math import gamma as gamma_fn
 from math import log, pi
+from typing import Any
 
 import numpy as np
 from scipy.ndimage import uniform_filter, uniform_filter1d
@@ -73,9 +80,26 @@ from scipy.special import digamma, gammaln, kve
 
 from .grid import Grid
 
-__all__ = ["NullModel", "null_model", "ec_density", "max_tail", "resels_box", "resels_ellipsoid", "fit_tail_scale"]
+__all__ = [
+    "NullModel",
+    "null_model",
+    "WINDOW_CELLS",
+    "LEGACY_CFAR",
+    "ec_density",
+    "max_tail",
+    "resels_box",
+    "resels_ellipsoid",
+    "fit_tail_scale",
+]
 
 _FOUR_LN2 = 4 * log(2)
+#: The training window's default half-widths (lateral, axial) in resolution cells, by the map's dimension
+#: (null_model; docs/design.md §4.9): compact in depth, where the level changes fastest (the surface's
+#: single-scattering peak, attenuation), and about 20–25 lateral cells, a line in 2-D, a square in 3-D.
+WINDOW_CELLS: dict[int, tuple[float, float]] = {2: (10.0, 1.0), 3: (2.0, 1.0)}
+#: The previous default CFAR (± 6 × ± 3 cells, censoring at 8× the per-depth median, the node itself in its
+#: own training), kept for comparison: ``null_model(..., **LEGACY_CFAR)``.
+LEGACY_CFAR: dict[str, Any] = {"window_cells": (6.0, 3.0), "censor": 8.0, "censor_reference": "depth", "cut_guard": 0.0}
 SURE_SIGNIFICANCE = 30.0  # S of a decided peak, left out of the map's own tail fit (module doc, step 2b)
 MIN_FIT_RESELS = 1000.0  # maps with fewer resels keep the speckle law (β = 1): too few exceedances to fit
 
@@ -299,24 +323,35 @@ def null_model(
     level: np.ndarray | None = None,
     visible: np.ndarray | None = None,
     window_cells: tuple[float, float] | None = None,
-    censor: float = 8.0,
+    censor: float = 30.0,
     heavy_tails: bool = False,
     own_guard: float = 2.0,
     tail_fit: tuple[float, float] | None = (4.5, 11.0),
     greatest_of: bool = False,
+    cut_guard: float = 0.5,
+    censor_reference: str = "local",
 ) -> NullModel:
     """Estimate the local null model of a γ-map (module doc, steps 1–3).
 
     resolution: (lateral, axial) resolution cell in metres (δρ_D, c0/(2Δf)): the unit of the training
-    window (± `window_cells` cells laterally and in depth, default ± 6 × ± 3: measured on 2-D fog, ± 12 × ± 6
-    over the physical level gained power on sparse scatterers but let the false alarms rise to 3α at
-    α = 0.01) and of the guard region around censored nodes.
+    window (± `window_cells` cells laterally and in depth; default `WINDOW_CELLS` of the map's dimension:
+    ± 1 axial cell, and laterally ± 10 cells in 2-D, ± 2 in 3-D — about 20–25 lateral cells either way;
+    docs/design.md §4.9 says why and what was measured) and of the guard region around censored nodes.
+    `LEGACY_CFAR` holds the previous settings (± 6 × ± 3, per-depth censoring at 8, no guard), for
+    comparison.
     level: a physical null level of γ² known up to a constant (fpcore.background: the data's energy in
     the fingerprint's own time support times the aperture factor); the CFAR then only corrects what it
     leaves (default: none, γ² itself). visible: nodes where the fingerprint can be tested (the others
     neither train nor count as cells). heavy_tails: fit a local K law (step 2, off by default); tail_fit: the
     (u, U) range of the map's own tail fit (step 2b; None: the speckle law as is); greatest_of: the level
     is the greater of the full window's and each lateral half's (step 1, GO-CFAR; off by default).
+    cut_guard: ± resolution cells around the cell under test left out of its own training mean (the
+    radar CA-CFAR's guard cells, default ± 0.5; 0: the window's mean includes the node itself, which masks
+    a target with its own echo). censor_reference: what `censor` compares a node with before it is left
+    out of training — "local" (default), the window's uncensored mean around it (with the same guard), or
+    "depth", the robust per-depth median; censor = inf censors nothing. The default censors only nodes 30×
+    above their surroundings (a null node does so with probability e^{−30}): another strong target in the
+    window, not the background's own bright grains, whose removal biased the level low (§4.9).
     """
     g2 = np.asarray(gamma, np.float64) ** 2
     if level is not None:
@@ -325,7 +360,7 @@ def null_model(
     vis = np.ones(g2.shape, bool) if visible is None else np.asarray(visible, bool)
     lat_res, ax_res = resolution
     if window_cells is None:
-        window_cells = (6.0, 3.0)
+        window_cells = WINDOW_CELLS[min(max(nd, 2), 3)]
     cells = [lat_res] * (nd - 1) + [ax_res]
     half = [
         max(int(round(w * c / s)), 2)
@@ -333,9 +368,28 @@ def null_model(
     ]
     sizes = [min(2 * h + 1, n) for h, n in zip(half, g2.shape, strict=True)]
 
+    if censor_reference not in ("depth", "local"):
+        raise ValueError(f"censor_reference: expected 'depth' or 'local', got {censor_reference!r}")
+    # The cell under test's guard box (nodes per axis), left out of its own training mean.
+    gsizes = (
+        [
+            min(2 * max(1, int(np.ceil(cut_guard * c / s))) + 1, n)
+            for c, s, n in zip(cells, grid.spacing, g2.shape, strict=True)
+        ]
+        if cut_guard > 0
+        else None
+    )
+
+    def box_sum(values: np.ndarray, box: list[int]) -> np.ndarray:
+        return uniform_filter(values, box, mode="constant") * float(np.prod(box))
+
     def local_mean(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
-        s = uniform_filter(values * weights, sizes, mode="constant")
-        n = uniform_filter(weights, sizes, mode="constant")
+        s = box_sum(values * weights, sizes)
+        n = box_sum(weights, sizes)
+        if gsizes is not None:  # CA-CFAR: the window less the guard box around the cell under test
+            s_g, n_g = box_sum(values * weights, gsizes), box_sum(weights, gsizes)
+            ring = n - n_g > 0.25 * n  # else (a window mostly guard, at the grid's edges) the whole window
+            s, n = np.where(ring, s - s_g, s), np.where(ring, n - n_g, n)
         return np.where(n > 1e-6, s / np.maximum(n, 1e-30), np.nan)
 
     # Robust first pass: the local median of γ² over visible nodes (exponential: median = ln 2 × mean),
@@ -344,7 +398,10 @@ def null_model(
     flat = np.where(vis, g2, np.nan).reshape(-1, nz)
     med = np.nanmedian(np.where(np.isnan(flat).all(axis=0, keepdims=True), 1.0, flat), axis=0) / np.log(2)
     med = uniform_filter1d(med, sizes[-1], mode="nearest")
-    t0 = g2 / np.maximum(med, 1e-300)
+    if censor_reference == "local" and np.isfinite(censor):
+        t0 = g2 / np.maximum(np.nan_to_num(local_mean(g2, vis.astype(np.float64)), nan=np.inf), 1e-300)
+    else:
+        t0 = g2 / np.maximum(med, 1e-300)
     hot = ((t0 > censor) & vis).astype(np.float32)
 
     def guard(n_cells: float) -> np.ndarray:
@@ -385,7 +442,9 @@ def null_model(
     # Independent training cells per node: the training nodes in its window over the nodes per resel.
     # As in radar CA-CFAR, the cell under test's own guard region is not training by design: nodes
     # censored within ± `own_guard` cells of a node (its own peak and sidelobes) do not count as missing.
-    count = uniform_filter(train, sizes, mode="constant") * float(np.prod(sizes))
+    count = box_sum(train, sizes)
+    if gsizes is not None:
+        count = np.where(count - box_sum(train, gsizes) > 0.25 * count, count - box_sum(train, gsizes), count)
     if own_guard > 0:
         near = [max(1, int(np.ceil(own_guard * c / s))) * 2 + 1 for c, s in zip(cells, grid.spacing, strict=True)]
         censored = (vis & (train == 0)).astype(np.float64)
