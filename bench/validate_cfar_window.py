@@ -1,4 +1,4 @@
-"""The CFAR's training window against the previous one, on the same maps (docs/design.md §4.9).
+"""The compact CFAR setting against the default, on the same maps (docs/design.md §4.9).
 
     python bench/validate_cfar_window.py --dim 3 --single-scattering field --media 100 --seed0 8000
     python bench/validate_cfar_window.py --dim 2 --media 300                      # the default fog
@@ -6,11 +6,11 @@
 
 One frame per simulated medium (frames of one medium are correlated), the quick rig, the default grid (the
 record's whole time window) and the physical null level P·A of eq. (B1), exactly what `fpcore.locate` uses;
-each γ-map goes through `fpcore.cfar.null_model` twice: with its defaults (`WINDOW_CELLS`, the cell under test
-guarded, censoring at 30× the local mean) and with `LEGACY_CFAR` (± 6 × ± 3 cells, censoring at 8× the
-per-depth median). Target-free media: the fraction whose most significant node reports PFA < 0.05 / 0.01 /
-1e-3 (calibrated: ≤ α), with Clopper–Pearson intervals, and the depths of the peaks below 0.05. With
-``--targets``: every target's map, detected when that node is within 1 mm of the truth at PFA < 1e-3.
+each γ-map goes through `fpcore.cfar.null_model` twice: with its defaults (± 6 × ± 3 cells, censoring at 8× the
+per-depth median) and with `cfar_options("compact")` (`COMPACT_WINDOW_CELLS`, the cell under test guarded,
+censoring at 30× the local mean). Target-free media: the fraction whose most significant node reports
+PFA < 0.05 / 0.01 / 1e-3 (calibrated: ≤ α), with Clopper–Pearson intervals, and the depths of the peaks below
+0.05. With ``--targets``: every target's map, detected when that node is within 1 mm of the truth at PFA < 1e-3.
 """
 
 from __future__ import annotations
@@ -29,12 +29,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from validate_pfa import interval  # noqa: E402
 
 import fpcore  # noqa: E402
-from fpcore.cfar import LEGACY_CFAR, null_model  # noqa: E402
+from fpcore.cfar import CFAR_SETTINGS, null_model  # noqa: E402
 from fpcore.grid import Grid  # noqa: E402
 from fpcore.locate import resolution_of  # noqa: E402
 from fpcore.simulate import scenario  # noqa: E402
 
-CONFIGS: dict[str, dict[str, Any]] = {"previous (LEGACY_CFAR)": LEGACY_CFAR, "default": {}}
+CONFIGS: dict[str, dict[str, Any]] = CFAR_SETTINGS
 
 
 def top_peak(g: np.ndarray, grid: Grid, res: tuple[float, float], lev: np.ndarray, vis: np.ndarray, kw: dict):
@@ -51,7 +51,7 @@ def main() -> None:
     ap.add_argument("--dim", type=int, choices=(2, 3), default=3, help="3: sinking-sphere, 2: sinking-cylinder")
     ap.add_argument("--single-scattering", choices=("envelope", "field"), help="the media's (default: scenario's)")
     ap.add_argument("--media", type=int, default=40, help="simulated media, one frame each (default 40)")
-    ap.add_argument("--seed0", type=int, default=9000, help="first medium (the window was chosen on 8000–8999)")
+    ap.add_argument("--seed0", type=int, default=9000, help="first medium (the compact window was chosen on 8000–8999)")
     ap.add_argument("--targets", action="store_true", help="keep the targets: detection power instead of the null")
     ap.add_argument("--depth-ls", type=float, help="targets' depth in ℓ_s (scenario option)")
     ap.add_argument("--conventions", choices=("paper", "legacy"), help="scenario conventions (default: paper)")

@@ -30,6 +30,7 @@ import numpy as np
 from rich.progress import Progress
 
 import fpcore
+import fpcore.cfar
 from fpcore import Grid, detect
 from fpcore.acquisition import PlaneWaveData
 from fpcore.fingerprint import point_fingerprint
@@ -68,6 +69,7 @@ def scenario_maps(
     seed0: int = 100,
     medium: dict | None = None,
     single_scattering_null: bool = False,
+    cfar: str = "default",
 ) -> list[dict]:
     """Per frame: each target's fingerprint's top detection (PFA, position error if a truth exists)."""
     rows: list[dict] = []
@@ -80,7 +82,7 @@ def scenario_maps(
             first = sc.frame(0)
             grid = Grid.for_acquisition(first, sc.band)  # the default grid: whole record, no window
             imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
-            level = fpcore.NullLevel(imager, single_scattering=single_scattering_null)
+            level = fpcore.NullLevel(imager, single_scattering=single_scattering_null, cfar=cfar)
             fps = sc.fingerprints(imager.out_sines_for(first))
         if not with_targets:
             sc = sc.without_targets()
@@ -192,11 +194,17 @@ def main() -> None:
         action="store_true",
         help="mix the single-scattering level into the null level (NullLevel(single_scattering=True), eq. B2)",
     )
+    ap.add_argument(
+        "--cfar",
+        choices=sorted(fpcore.cfar.CFAR_SETTINGS),
+        default="default",
+        help="the CFAR setting of the null model (fpcore.cfar.CFAR_SETTINGS; 'compact': docs/design.md §4.9)",
+    )
     ap.add_argument("--png", default="out/bench/pfa_pp.png")
     args = ap.parse_args()
     t0 = time.perf_counter()
     medium = {"single_scattering": args.single_scattering} if args.single_scattering else None
-    opts = {"medium": medium, "single_scattering_null": args.null_single_scattering}
+    opts = {"medium": medium, "single_scattering_null": args.null_single_scattering, "cfar": args.cfar}
     with Progress() as progress:
         fps_ = args.frames_per_seed
         fog = {

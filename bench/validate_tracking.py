@@ -45,6 +45,7 @@ def run(
     overrides: dict[str, Any],
     integrate: int = 1,
     use_roi: bool = False,
+    cfar: str = "default",
 ) -> dict[str, Any]:
     """Simulate, image, track over the scenario's region of interest (depths `z_range` if given);
     returns per-target rows and the mean confocal image."""
@@ -57,19 +58,21 @@ def run(
         grid = fpcore.Grid.for_acquisition(sc.frame(0), sc.band, spacing=spacing)  # the whole record
     z_range = (float(grid.z[0]), float(grid.z[-1]))
     imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
-    level = fpcore.NullLevel(imager)
+    level = fpcore.NullLevel(imager, cfar=cfar)
     fps = sc.fingerprints(imager.out_sines_for(sc.frame(0)))
     lam = sc.c0 / sc.probe.centre_frequency
     bw = sc.band[1] - sc.band[0]
     aperture = sc.probe.aperture[0]
-    tracker = Tracker(grid, lam, aperture, bw, sc.c0, TrackerConfig(max_tracks_per_map=1, integrate_frames=integrate))
+    tracker = Tracker(
+        grid, lam, aperture, bw, sc.c0, TrackerConfig(max_tracks_per_map=1, integrate_frames=integrate, cfar=cfar)
+    )
     rows: dict[str, list[dict[str, Any]]] = {t: [] for t in sc.target_names}
     conf_sum = np.zeros(grid.shape, np.float64)
     t_start = time.perf_counter()
     print(
         f"{name} ({'quick' if quick else 'full'}), {n} frames, grid {grid.shape} "
         f"(z {z_range[0] * 1e3:.1f}–{z_range[1] * 1e3:.1f} mm), overrides {overrides or 'none'}, "
-        f"tracker integrates {integrate} frame(s)"
+        f"tracker integrates {integrate} frame(s), CFAR {cfar!r}"
     )
     print(
         f"{'frame':>5} {'target':>10} {'track err (mm)':>15} {'argmax err (mm)':>16} {'CR radius (mm)':>15} "
@@ -247,6 +250,15 @@ def main() -> None:
         help="the scenario's conventions (default: paper; legacy: the earlier, easier rig, for comparison)",
     )
     ap.add_argument("--integrate", type=int, default=1, help="tracker: search the mean of the last K γ-maps")
+    ap.add_argument(
+        "--cfar", choices=("default", "compact"), default="default", help="CFAR setting (docs/design.md §4.9)"
+    )
+    ap.add_argument(
+        "--single-scattering",
+        choices=("envelope", "field"),
+        default=None,
+        help="the medium's single scattering (default: the scenario's; 'field': the beads' focused speckle)",
+    )
     ap.add_argument("--png", default=None, help="figure path (default out/tracking-<scenario>.png)")
     ap.add_argument("--json", default=None, help="per-frame rows and the summary as JSON")
     args = ap.parse_args()
@@ -259,7 +271,11 @@ def main() -> None:
         overrides["depth_ls"] = args.depth_ls
     if args.conventions is not None:
         overrides["conventions"] = args.conventions
-    res = run(args.scenario, not args.full, args.frames, args.z, args.spacing, overrides, args.integrate, args.roi)
+    if args.single_scattering is not None:
+        overrides["single_scattering"] = args.single_scattering
+    res = run(
+        args.scenario, not args.full, args.frames, args.z, args.spacing, overrides, args.integrate, args.roi, args.cfar
+    )
     summary = summarise(res)
     png = args.png or f"out/tracking-{args.scenario}.png"
     figure(png, res)

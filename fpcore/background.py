@@ -33,6 +33,7 @@ import scipy.fft as sfft
 from scipy.ndimage import uniform_filter
 
 from .acquisition import Acquisition, PlaneWaveData, Spectrum, to_plane_waves
+from .cfar import cfar_options
 from .fingerprint import Fingerprint
 from .geometry import from_xyz
 from .grid import Grid
@@ -175,6 +176,9 @@ class NullLevel:
     the surface, P A is too smooth in depth and too low. It costs power on targets that stand out of the
     confocal image (module doc there). `last_shares` holds the last fit's shares of depth rows set by
     each component (diffuse, single scattering).
+
+    `cfar`: the named CFAR setting that corrects this level (fpcore.cfar.CFAR_SETTINGS: "default", or
+    "compact", calibrated on the beads' focused single-scattering speckle; docs/design.md §4.9).
     """
 
     def __init__(
@@ -185,9 +189,12 @@ class NullLevel:
         seed: int = 0,
         cache: int = 8,
         single_scattering: bool = False,
+        cfar: str = "default",
     ) -> None:
+        cfar_options(cfar)  # a clear error for an unknown name, at construction
         self.imager = imager
         self.single_scattering = single_scattering
+        self.cfar = cfar
         self.speckle = SpeckleLevel(imager)
         self.last_shares: tuple[float, float] = (1.0, 0.0)
         self._image: tuple[np.ndarray, np.ndarray] | None = None  # the last frame's confocal image (any fp)

@@ -19,14 +19,14 @@ for the maximum, Worsley et al. 1996):
 1. **Local scale** (`NullModel.power`): γ² is first divided by a physical null level when one is given
    (fpcore.background: the data's energy in the fingerprint's time support × the aperture factor);
    what remains is averaged over a training window of ± `window_cells` resolution cells around each
-   node (`WINDOW_CELLS`: ± 1 axial cell, ± 10 lateral cells in 2-D, ± 2 in 3-D), less a guard box of
-   ± 0.5 cell around the node itself (`cut_guard`: the cell under test does not train its own level),
-   censoring nodes that stand out against the window's uncensored mean (T > `censor` = 30: another
-   strong target, not the background's own bright grains) together with a guard region of one
-   resolution cell: a censored cell-averaging CFAR. The window is compact in depth because the level
-   changes fastest there (the beads' single-scattering peak a millimetre under the suspension's surface)
-   and narrow enough laterally to follow the single-scattering level's lateral concentration, which the
-   physical level does not carry (docs/design.md §4.9, measured). Optionally (`greatest_of`, off by
+   node (± 6 lateral × ± 3 axial), censoring nodes that stand out (T > `censor` against a robust
+   per-depth median) together with a guard region of one resolution cell: a censored cell-averaging
+   CFAR. The **compact** setting (`cfar_options("compact")`, `fp … --cfar compact`) trains on ± 1 axial
+   cell by ± 10 lateral cells in 2-D, ± 2 in 3-D (`COMPACT_WINDOW_CELLS`), leaves the cell under test's
+   ± 0.5 cell out of its own level (`cut_guard`) and censors only nodes 30× above the window's uncensored
+   mean: it follows the single-scattering level's peak under the surface and its lateral concentration,
+   which the physical level does not carry, and is calibrated on the focused speckle where the default is
+   not (docs/design.md §4.9, measured). Optionally (`greatest_of`, off by
    default) the level is the greater of the window's mean and the means of its two halves along each
    lateral axis (GO-CFAR, Hansen & Sawyers 1980), so that a level edge — the border of the insonified
    region — is not averaged into its bright side; it halved the false alarms on the 2-D diffusion fog
@@ -83,8 +83,9 @@ from .grid import Grid
 __all__ = [
     "NullModel",
     "null_model",
-    "WINDOW_CELLS",
-    "LEGACY_CFAR",
+    "COMPACT_WINDOW_CELLS",
+    "CFAR_SETTINGS",
+    "cfar_options",
     "ec_density",
     "max_tail",
     "resels_box",
@@ -93,13 +94,29 @@ __all__ = [
 ]
 
 _FOUR_LN2 = 4 * log(2)
-#: The training window's default half-widths (lateral, axial) in resolution cells, by the map's dimension
-#: (null_model; docs/design.md §4.9): compact in depth, where the level changes fastest (the surface's
-#: single-scattering peak, attenuation), and about 20–25 lateral cells, a line in 2-D, a square in 3-D.
-WINDOW_CELLS: dict[int, tuple[float, float]] = {2: (10.0, 1.0), 3: (2.0, 1.0)}
-#: The previous default CFAR (± 6 × ± 3 cells, censoring at 8× the per-depth median, the node itself in its
-#: own training), kept for comparison: ``null_model(..., **LEGACY_CFAR)``.
-LEGACY_CFAR: dict[str, Any] = {"window_cells": (6.0, 3.0), "censor": 8.0, "censor_reference": "depth", "cut_guard": 0.0}
+#: The compact training window's half-widths (lateral, axial) in resolution cells, by the map's dimension
+#: (``cfar_options("compact")``; docs/design.md §4.9): ± 1 axial cell, where the level changes fastest (the
+#: beads' single-scattering peak under the surface, attenuation), and about 20–25 lateral cells, a line in
+#: 2-D, a square in 3-D, narrow enough to follow the single-scattering level's lateral concentration.
+COMPACT_WINDOW_CELLS: dict[int, tuple[float, float]] = {2: (10.0, 1.0), 3: (2.0, 1.0)}
+#: Named CFAR settings (`cfar_options`): "default" — ± 6 × ± 3 cells, censoring at 8× the per-depth median,
+#: the node in its own training; "compact" — the compact window, the cell under test's ± 0.5 cell left out of
+#: its own level, censoring only at 30× the window's uncensored mean (calibrated on the focused
+#: single-scattering speckle, where the default is not; it moves the peak of a target in water to another
+#: of its own lobes, docs/design.md §4.9).
+CFAR_SETTINGS: dict[str, dict[str, Any]] = {
+    "default": {},
+    "compact": {"window_cells": "compact", "censor": 30.0, "censor_reference": "local", "cut_guard": 0.5},
+}
+
+
+def cfar_options(name: str) -> dict[str, Any]:
+    """The `null_model` keyword arguments of a named CFAR setting (`CFAR_SETTINGS`)."""
+    if name not in CFAR_SETTINGS:
+        raise ValueError(f"cfar: expected one of {sorted(CFAR_SETTINGS)}, got {name!r}")
+    return dict(CFAR_SETTINGS[name])
+
+
 SURE_SIGNIFICANCE = 30.0  # S of a decided peak, left out of the map's own tail fit (module doc, step 2b)
 MIN_FIT_RESELS = 1000.0  # maps with fewer resels keep the speckle law (β = 1): too few exceedances to fit
 
@@ -322,23 +339,22 @@ def null_model(
     resolution: tuple[float, float],
     level: np.ndarray | None = None,
     visible: np.ndarray | None = None,
-    window_cells: tuple[float, float] | None = None,
-    censor: float = 30.0,
+    window_cells: tuple[float, float] | str | None = None,
+    censor: float = 8.0,
     heavy_tails: bool = False,
     own_guard: float = 2.0,
     tail_fit: tuple[float, float] | None = (4.5, 11.0),
     greatest_of: bool = False,
-    cut_guard: float = 0.5,
-    censor_reference: str = "local",
+    cut_guard: float = 0.0,
+    censor_reference: str = "depth",
 ) -> NullModel:
     """Estimate the local null model of a γ-map (module doc, steps 1–3).
 
     resolution: (lateral, axial) resolution cell in metres (δρ_D, c0/(2Δf)): the unit of the training
-    window (± `window_cells` cells laterally and in depth; default `WINDOW_CELLS` of the map's dimension:
-    ± 1 axial cell, and laterally ± 10 cells in 2-D, ± 2 in 3-D — about 20–25 lateral cells either way;
-    docs/design.md §4.9 says why and what was measured) and of the guard region around censored nodes.
-    `LEGACY_CFAR` holds the previous settings (± 6 × ± 3, per-depth censoring at 8, no guard), for
-    comparison.
+    window (± `window_cells` cells laterally and in depth, default ± 6 × ± 3: measured on 2-D fog, ± 12 × ± 6
+    over the physical level gained power on sparse scatterers but let the false alarms rise to 3α at
+    α = 0.01; "compact": `COMPACT_WINDOW_CELLS` of the map's dimension) and of the guard region around
+    censored nodes. `cfar_options("compact")` gives the settings calibrated on the focused speckle.
     level: a physical null level of γ² known up to a constant (fpcore.background: the data's energy in
     the fingerprint's own time support times the aperture factor); the CFAR then only corrects what it
     leaves (default: none, γ² itself). visible: nodes where the fingerprint can be tested (the others
@@ -346,12 +362,13 @@ def null_model(
     (u, U) range of the map's own tail fit (step 2b; None: the speckle law as is); greatest_of: the level
     is the greater of the full window's and each lateral half's (step 1, GO-CFAR; off by default).
     cut_guard: ± resolution cells around the cell under test left out of its own training mean (the
-    radar CA-CFAR's guard cells, default ± 0.5; 0: the window's mean includes the node itself, which masks
-    a target with its own echo). censor_reference: what `censor` compares a node with before it is left
-    out of training — "local" (default), the window's uncensored mean around it (with the same guard), or
-    "depth", the robust per-depth median; censor = inf censors nothing. The default censors only nodes 30×
-    above their surroundings (a null node does so with probability e^{−30}): another strong target in the
-    window, not the background's own bright grains, whose removal biased the level low (§4.9).
+    radar CA-CFAR's guard cells; 0, the default: the window's mean includes the node itself, which masks a
+    target with its own echo). censor_reference: what `censor` compares a node with before it is left out
+    of training — "depth" (default), the robust per-depth median, or "local", the window's uncensored mean
+    around it (with the same guard); censor = inf censors nothing. The "compact" setting censors only
+    nodes 30× above their surroundings (a null node does so with probability e^{−30}): another strong
+    target in the window, not the background's own bright grains, whose removal biased the level low on
+    the focused speckle (§4.9).
     """
     g2 = np.asarray(gamma, np.float64) ** 2
     if level is not None:
@@ -360,7 +377,11 @@ def null_model(
     vis = np.ones(g2.shape, bool) if visible is None else np.asarray(visible, bool)
     lat_res, ax_res = resolution
     if window_cells is None:
-        window_cells = WINDOW_CELLS[min(max(nd, 2), 3)]
+        window_cells = (6.0, 3.0)
+    elif window_cells == "compact":
+        window_cells = COMPACT_WINDOW_CELLS[min(max(nd, 2), 3)]
+    elif isinstance(window_cells, str):
+        raise ValueError(f"window_cells: expected (lateral, axial) cells or 'compact', got {window_cells!r}")
     cells = [lat_res] * (nd - 1) + [ax_res]
     half = [
         max(int(round(w * c / s)), 2)

@@ -26,11 +26,11 @@ def geometry_key(acq: Acquisition) -> tuple:
     return (acq.probe.positions.tobytes(), acq.sequence.sines.tobytes(), float(acq.fs), acq.n_samples, float(acq.c0))
 
 
-def tracker_settings(acq: Acquisition, band: tuple[float, float], cfg: PipelineConfig) -> dict[str, float]:
+def tracker_settings(acq: Acquisition, band: tuple[float, float], cfg: PipelineConfig) -> dict[str, Any]:
     """What the tracker of frames like ``acq`` depends on besides the grid (JSON-safe: a sharded merger gets
     it from the workers, services.nodes.merger): wavelength, aperture, bandwidth, sound speed, tracks per map
     (one per fingerprint and expected target, ``n_peaks``: a calibration describes one object), frames
-    integrated."""
+    integrated, CFAR setting."""
     return {
         "wavelength": acq.c0 / acq.probe.centre_frequency,
         "aperture": float(acq.probe.aperture[0]),
@@ -38,13 +38,18 @@ def tracker_settings(acq: Acquisition, band: tuple[float, float], cfg: PipelineC
         "c0": float(acq.c0),
         "max_tracks_per_map": max(1, cfg.n_peaks),
         "integrate_frames": cfg.track_integrate,
+        "cfar": cfg.cfar,
     }
 
 
 def make_tracker(grid: Grid, settings: Mapping[str, Any]) -> Tracker:
     """The tracker of :func:`tracker_settings` on ``grid``."""
     s = settings
-    config = TrackerConfig(max_tracks_per_map=int(s["max_tracks_per_map"]), integrate_frames=int(s["integrate_frames"]))
+    config = TrackerConfig(
+        max_tracks_per_map=int(s["max_tracks_per_map"]),
+        integrate_frames=int(s["integrate_frames"]),
+        cfar=str(s.get("cfar", "default")),
+    )
     return Tracker(grid, s["wavelength"], s["aperture"], s["bandwidth"], s["c0"], config)
 
 

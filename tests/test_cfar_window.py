@@ -4,8 +4,9 @@ On the beads' focused single-scattering speckle the null level of γ² is concen
 transmit beams and the receive aperture overlap) and peaks a millimetre under the suspension's surface;
 the physical level of eq. (B1) has neither. A Gaussian random field with such a variance, and no level
 given, stands in for it here: γ² is exponential around its local mean by construction, so a right local
-level makes T = γ²/level average 1 wherever the variance is high, and the legacy window (± 6 × ± 3
-cells, censoring at 8× the per-depth median) is shown to miss it.
+level makes T = γ²/level average 1 wherever the variance is high. The compact CFAR setting
+(`cfar_options("compact")`) follows it; the default window (± 6 × ± 3 cells, censoring at 8× the per-depth
+median) is shown to miss it.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-from fpcore.cfar import LEGACY_CFAR, WINDOW_CELLS, null_model
+from fpcore.cfar import COMPACT_WINDOW_CELLS, cfar_options, null_model
 from fpcore.grid import Grid
 
 SPACING = 0.3e-3
@@ -37,7 +38,7 @@ def bump_variance(grid: Grid) -> np.ndarray:
     return lateral[:, :, None] * depth[None, None, :]
 
 
-def test_default_window_follows_a_lateral_and_depth_concentration() -> None:
+def test_compact_window_follows_a_lateral_and_depth_concentration() -> None:
     grid = Grid.regular((0, 47 * SPACING), (0, 39 * SPACING), SPACING, y_range=(0, 47 * SPACING))
     v = bump_variance(grid)
     core = v > 0.7 * v.max()  # the bright core: centre of the bump, on the depth peak
@@ -45,19 +46,25 @@ def test_default_window_follows_a_lateral_and_depth_concentration() -> None:
     new, old = [], []
     for _ in range(6):
         g = np.abs(speckle(grid.shape, rng)) * np.sqrt(v)
-        new.append(null_model(g, grid, RES).statistic[core].mean())
-        old.append(null_model(g, grid, RES, **LEGACY_CFAR).statistic[core].mean())
+        new.append(null_model(g, grid, RES, **cfar_options("compact")).statistic[core].mean())
+        old.append(null_model(g, grid, RES).statistic[core].mean())
     # Near the right level: T averages 1 on the core up to the window's own averaging of a peaked profile
     # (it sits at the top of both peaks: ≈ 1.2 measured here).
     assert np.mean(new) < 1.35, new
-    # The legacy window spans the whole grid laterally and censors the core's bright grains: it under-
+    # The default window spans the whole grid laterally and censors the core's bright grains: it under-
     # estimates the core's level (T ≈ 1.6–2.6 here) — what made 83 % of 3-D focused-speckle maps report
     # PFA < 0.05.
     assert np.mean(old) > 1.5 and np.mean(old) > np.mean(new) + 0.4, (old, new)
 
 
-def test_window_defaults_by_dimension() -> None:
-    assert WINDOW_CELLS[2] == (10.0, 1.0) and WINDOW_CELLS[3] == (2.0, 1.0)
+def test_compact_window_by_dimension_and_unknown_setting() -> None:
+    assert COMPACT_WINDOW_CELLS[2] == (10.0, 1.0) and COMPACT_WINDOW_CELLS[3] == (2.0, 1.0)
+    try:
+        cfar_options("narrow")
+    except ValueError as exc:
+        assert "cfar" in str(exc) and "compact" in str(exc)
+    else:
+        raise AssertionError("an unknown CFAR setting must be refused")
 
 
 def test_cell_under_test_does_not_train_its_own_level() -> None:
@@ -74,7 +81,8 @@ def test_cell_under_test_does_not_train_its_own_level() -> None:
     contrast = 20.0  # target power over the speckle's mean: below the censoring threshold (30)
     g = np.abs(field + np.sqrt(contrast) * blob)
     truth = float(g[c] ** 2)  # γ² at the target over a unit level
-    guarded = float(null_model(g, grid, RES).statistic[c])
-    unguarded = float(null_model(g, grid, RES, cut_guard=0.0, censor=np.inf).statistic[c])
+    compact = cfar_options("compact")
+    guarded = float(null_model(g, grid, RES, **compact).statistic[c])
+    unguarded = float(null_model(g, grid, RES, **{**compact, "cut_guard": 0.0, "censor": np.inf}).statistic[c])
     assert 0.7 * truth < guarded < 1.3 * truth, (guarded, truth)
     assert unguarded < 0.85 * guarded, (unguarded, guarded)

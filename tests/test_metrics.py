@@ -150,9 +150,7 @@ def test_heavier_than_speckle_null_is_discounted_by_the_maps_own_tail() -> None:
         log_level = gaussian_filter(rng.standard_normal(grid.shape), 5.0)
         gamma = (np.abs(field) * np.exp(0.1 * log_level / log_level.std())).astype(np.float32)
         for tail_fit, out in ((None, raw), ((4.5, 11.0), fitted)):
-            # A window of ± 6 × ± 3 cells (the texture's 5-node scale lies below it; the default ± 1 axial
-            # cell would follow part of it, which is its purpose, and leave the tail fit less to see).
-            nm = null_model(gamma, grid, res, tail_fit=tail_fit, window_cells=(6.0, 3.0))
+            nm = null_model(gamma, grid, res, tail_fit=tail_fit)
             out.append(nm.pfa(float(nm.significance[nm.visible].max())))
             if tail_fit is not None:
                 assert nm.tail_scale > 1.1

@@ -87,3 +87,27 @@ def test_fp_version(capsys) -> None:
     with pytest.raises(SystemExit) as info:
         main(["--version"])
     assert info.value.code == 0 and capsys.readouterr().out.strip() == f"fp {fpcore.__version__}"
+
+
+def test_cfar_setting_reaches_the_null_models_and_the_tracker() -> None:
+    """`PipelineConfig.cfar` (fp process/track/locate --cfar) is the setting the frame's null models and the
+    tracker use (fpcore.cfar.CFAR_SETTINGS); an unknown name is refused, naming the option."""
+    import numpy as np
+
+    from fpcore.cfar import cfar_options, null_model
+    from fpcore.locate import resolution_of
+
+    frames, cal = born_frames(1)
+    pipe = Pipeline(PipelineConfig(**SMALL, cfar="compact"), [FingerprintSpec("marker", calibration=cal)])
+    res = pipe.process(frames[0])
+    assert pipe._tracker is not None and pipe._tracker.config.cfar == "compact"
+    assert pipe._level is not None and pipe._level.cfar == "compact"
+    fp = res.fingerprints["marker"]
+    r = resolution_of(res.grid, res.acq, res.band)
+    lev, vis = pipe._level.level(res.acq, res.pw, fp, r)
+    direct = null_model(res.gammas["marker"], res.grid, r, level=lev, visible=vis, **cfar_options("compact"))
+    default = null_model(res.gammas["marker"], res.grid, r, level=lev, visible=vis)
+    assert np.array_equal(res.nulls["marker"].statistic, direct.statistic)
+    assert not np.array_equal(direct.statistic, default.statistic)
+    with pytest.raises(ValueError, match="--cfar"):
+        PipelineConfig(**SMALL, cfar="narrow")

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from fpcore import Acquisition, Grid
+from fpcore.cfar import CFAR_SETTINGS
 from fpcore.geometry import to_xyz
 from fpcore.locate import resolution_of
 from fpcore.metrics import DEFAULT_MAX_PFA
@@ -67,6 +68,13 @@ def add_fingerprint_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="mix the single-scattering level into the null level (docs/design.md §4.9, eq. B2): for backgrounds "
         "dominated by single scattering; costs power on targets that stand out of the confocal image",
+    )
+    p.add_argument(
+        "--cfar",
+        choices=sorted(CFAR_SETTINGS),
+        default="default",
+        help="the CFAR setting of the null model (docs/design.md §4.9): 'compact' (± 1 axial cell, a guard around "
+        "the node, censoring at 30×) is calibrated on single-scattering speckle, where 'default' is not",
     )
     p.add_argument("--dataset", help="dataset name inside the UFF file(s) when there are several")
 

@@ -122,7 +122,7 @@ def run_locate(args: argparse.Namespace) -> int:
     table = Table(title=f"fp locate {args.data}")
     for col in ("frame", "position (mm)", "γ_max", "C_γ", "C", "PFA", "δρ_L, δz_L (mm)", "error (mm)"):
         table.add_column(col, justify="right")
-    level = NullLevel(imager, single_scattering=args.null_single_scattering)
+    level = NullLevel(imager, single_scattering=args.null_single_scattering, cfar=args.cfar)
     with progress(console) as bar:
         task = bar.add_task("γ-maps", total=len(frames))
         for acq in frames:

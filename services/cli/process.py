@@ -13,6 +13,7 @@ import dataclasses
 import json
 import logging
 
+from fpcore.cfar import CFAR_SETTINGS
 from fpcore.geometry import to_xyz
 from fpcore.metrics import DEFAULT_MAX_PFA
 from services.bus import add_bus_arguments, bus_from_args, open_session, stop_on_signals, tune_malloc, wait_until
@@ -82,6 +83,13 @@ def add_process_parser(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="mix the single-scattering level into the null level (docs/design.md §4.9, eq. B2): for backgrounds "
         "dominated by single scattering; costs power on targets that stand out of the confocal image",
+    )
+    img.add_argument(
+        "--cfar",
+        choices=sorted(CFAR_SETTINGS),
+        default="default",
+        help="the CFAR setting of the null model (docs/design.md §4.9): 'compact' (± 1 axial cell, a guard around "
+        "the node, censoring at 30×) is calibrated on single-scattering speckle, where 'default' is not",
     )
     img.add_argument(
         "--map-encoding",
@@ -180,6 +188,7 @@ def config_from_args(args: argparse.Namespace) -> ProcessorConfig:
         max_frame_bytes=args.max_frame_bytes,
         publish_image=not args.no_image,
         single_scattering_null=args.null_single_scattering,
+        cfar=args.cfar,
         map_encoding=args.map_encoding,
         track=not args.no_track,
         track_integrate=args.track_integrate,

@@ -95,6 +95,7 @@ def run_track(args: argparse.Namespace) -> int:
         n_peaks=args.targets,
         max_pfa=args.max_pfa,
         single_scattering_null=args.null_single_scattering,
+        cfar=args.cfar,
         x_range=r["x_range"],
         y_range=r["y_range"],
         z_range=r["z_range"],
