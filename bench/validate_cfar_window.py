@@ -1,4 +1,4 @@
-"""The compact CFAR setting against the default, on the same maps (docs/design.md §4.9).
+"""The CFAR settings ("wide", "compact", "both") side by side, on the same maps (docs/design.md §4.9).
 
     python bench/validate_cfar_window.py --dim 3 --single-scattering field --media 100 --seed0 8000
     python bench/validate_cfar_window.py --dim 2 --media 300                      # the default fog
@@ -6,11 +6,12 @@
 
 One frame per simulated medium (frames of one medium are correlated), the quick rig, the default grid (the
 record's whole time window) and the physical null level P·A of eq. (B1), exactly what `fpcore.locate` uses;
-each γ-map goes through `fpcore.cfar.null_model` twice: with its defaults (± 6 × ± 3 cells, censoring at 8× the
-per-depth median) and with `cfar_options("compact")` (`COMPACT_WINDOW_CELLS`, the cell under test guarded,
-censoring at 30× the local mean). Target-free media: the fraction whose most significant node reports
-PFA < 0.05 / 0.01 / 1e-3 (calibrated: ≤ α), with Clopper–Pearson intervals, and the depths of the peaks below
-0.05. With ``--targets``: every target's map, detected when that node is within 1 mm of the truth at PFA < 1e-3.
+each γ-map goes through `fpcore.cfar.cfar_null_model` with every setting: "wide" (± 6 × ± 3 cells, censoring at
+8× the per-depth median), "compact" (`COMPACT_WINDOW_CELLS`, the cell under test guarded, censoring at 30× the
+local mean) and "both" (the greater of the two levels). Target-free media: the fraction whose most significant
+node reports PFA < 0.05 / 0.01 / 1e-3 (calibrated: ≤ α), with Clopper–Pearson intervals, and the depths of the
+peaks below 0.05. With ``--targets``: every target's map, detected when that node is within 1 mm of the truth
+at PFA < 1e-3.
 """
 
 from __future__ import annotations
@@ -29,17 +30,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from validate_pfa import interval  # noqa: E402
 
 import fpcore  # noqa: E402
-from fpcore.cfar import CFAR_SETTINGS, null_model  # noqa: E402
+from fpcore.cfar import CFAR_NAMES, cfar_null_model  # noqa: E402
 from fpcore.grid import Grid  # noqa: E402
 from fpcore.locate import resolution_of  # noqa: E402
 from fpcore.simulate import scenario  # noqa: E402
 
-CONFIGS: dict[str, dict[str, Any]] = CFAR_SETTINGS
 
-
-def top_peak(g: np.ndarray, grid: Grid, res: tuple[float, float], lev: np.ndarray, vis: np.ndarray, kw: dict):
+def top_peak(g: np.ndarray, grid: Grid, res: tuple[float, float], lev: np.ndarray, vis: np.ndarray, setting: str):
     """(PFA, position in (x, y, z) metres) of the map's most significant visible node."""
-    nm = null_model(g, grid, res, level=lev, visible=vis, **kw)
+    nm = cfar_null_model(setting, g, grid, res, level=lev, visible=vis)
     sig = np.where(vis, nm.significance, -np.inf)
     k = np.unravel_index(int(np.argmax(sig)), sig.shape)
     pos = [grid.x[k[0]], grid.y[k[1]], grid.z[k[2]]] if g.ndim == 3 else [grid.x[k[0]], 0.0, grid.z[k[1]]]
@@ -65,9 +64,9 @@ def main() -> None:
             opts[key] = value
     if args.conventions:
         opts["conventions"] = args.conventions
-    pfas: dict[str, list[float]] = {c: [] for c in CONFIGS}
-    hits: dict[str, list[bool]] = {c: [] for c in CONFIGS}
-    depths: dict[str, list[float]] = {c: [] for c in CONFIGS}
+    pfas: dict[str, list[float]] = {c: [] for c in CFAR_NAMES}
+    hits: dict[str, list[bool]] = {c: [] for c in CFAR_NAMES}
+    depths: dict[str, list[float]] = {c: [] for c in CFAR_NAMES}
     imager = level = grid = fps = None
     with Progress() as progress:
         task = progress.add_task(f"{name} {'with targets' if args.targets else 'fog only'}", total=args.media)
@@ -91,8 +90,8 @@ def main() -> None:
                     continue  # one map per target-free medium: independent maps
                 g = imager.gamma(pw, fp)
                 lev, vis = level.level(acq, pw, fp, res)
-                for cname, kw in CONFIGS.items():
-                    p, pos = top_peak(g, grid, res, lev, vis, kw)
+                for cname in CFAR_NAMES:
+                    p, pos = top_peak(g, grid, res, lev, vis, cname)
                     pfas[cname].append(p)
                     if args.targets and tname in truth:
                         hits[cname].append(p < 1e-3 and float(np.linalg.norm(pos - truth[tname])) < 1e-3)
@@ -100,7 +99,7 @@ def main() -> None:
                         depths[cname].append(round(float(pos[2]) * 1e3, 1))
             progress.advance(task)
     print(f"\n{name}, {args.media} media from seed {args.seed0}, {opts or 'scenario defaults'}:")
-    for cname in CONFIGS:
+    for cname in CFAR_NAMES:
         p = np.asarray(pfas[cname])
         if args.targets:
             logp = np.log10(np.maximum(p, 1e-300))

@@ -69,7 +69,7 @@ def scenario_maps(
     seed0: int = 100,
     medium: dict | None = None,
     single_scattering_null: bool = False,
-    cfar: str = "default",
+    cfar: str = fpcore.cfar.DEFAULT_CFAR,
 ) -> list[dict]:
     """Per frame: each target's fingerprint's top detection (PFA, position error if a truth exists)."""
     rows: list[dict] = []
@@ -196,9 +196,9 @@ def main() -> None:
     )
     ap.add_argument(
         "--cfar",
-        choices=sorted(fpcore.cfar.CFAR_SETTINGS),
-        default="default",
-        help="the CFAR setting of the null model (fpcore.cfar.CFAR_SETTINGS; 'compact': docs/design.md §4.9)",
+        choices=fpcore.cfar.CFAR_NAMES,
+        default=fpcore.cfar.DEFAULT_CFAR,
+        help="the CFAR setting of the null model (fpcore.cfar.CFAR_NAMES; docs/design.md §4.9)",
     )
     ap.add_argument("--png", default="out/bench/pfa_pp.png")
     args = ap.parse_args()

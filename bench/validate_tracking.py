@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 import fpcore
+from fpcore.cfar import CFAR_NAMES, DEFAULT_CFAR
 from fpcore.locate import null_of
 from fpcore.metrics import cramer_rao_precision, diffraction_resolution
 from fpcore.simulate import scenario
@@ -45,7 +46,7 @@ def run(
     overrides: dict[str, Any],
     integrate: int = 1,
     use_roi: bool = False,
-    cfar: str = "default",
+    cfar: str = DEFAULT_CFAR,
 ) -> dict[str, Any]:
     """Simulate, image, track over the scenario's region of interest (depths `z_range` if given);
     returns per-target rows and the mean confocal image."""
@@ -250,9 +251,7 @@ def main() -> None:
         help="the scenario's conventions (default: paper; legacy: the earlier, easier rig, for comparison)",
     )
     ap.add_argument("--integrate", type=int, default=1, help="tracker: search the mean of the last K γ-maps")
-    ap.add_argument(
-        "--cfar", choices=("default", "compact"), default="default", help="CFAR setting (docs/design.md §4.9)"
-    )
+    ap.add_argument("--cfar", choices=CFAR_NAMES, default=DEFAULT_CFAR, help="CFAR setting (docs/design.md §4.9)")
     ap.add_argument(
         "--single-scattering",
         choices=("envelope", "field"),

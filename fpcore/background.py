@@ -33,7 +33,7 @@ import scipy.fft as sfft
 from scipy.ndimage import uniform_filter
 
 from .acquisition import Acquisition, PlaneWaveData, Spectrum, to_plane_waves
-from .cfar import cfar_options
+from .cfar import DEFAULT_CFAR, check_cfar
 from .fingerprint import Fingerprint
 from .geometry import from_xyz
 from .grid import Grid
@@ -177,8 +177,8 @@ class NullLevel:
     confocal image (module doc there). `last_shares` holds the last fit's shares of depth rows set by
     each component (diffuse, single scattering).
 
-    `cfar`: the named CFAR setting that corrects this level (fpcore.cfar.CFAR_SETTINGS: "default", or
-    "compact", calibrated on the beads' focused single-scattering speckle; docs/design.md §4.9).
+    `cfar`: the named CFAR setting that corrects this level (fpcore.cfar.CFAR_NAMES: "wide", "compact" —
+    calibrated on the beads' focused single-scattering speckle — or "both"; docs/design.md §4.9).
     """
 
     def __init__(
@@ -189,9 +189,9 @@ class NullLevel:
         seed: int = 0,
         cache: int = 8,
         single_scattering: bool = False,
-        cfar: str = "default",
+        cfar: str = DEFAULT_CFAR,
     ) -> None:
-        cfar_options(cfar)  # a clear error for an unknown name, at construction
+        check_cfar(cfar)  # a clear error for an unknown name, at construction
         self.imager = imager
         self.single_scattering = single_scattering
         self.cfar = cfar

@@ -69,7 +69,7 @@ reports PFA < α stays ≤ α (measured figures: README, docs/design.md §4.9).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from math import gamma as gamma_fn
 from math import log, pi
 from typing import Any
@@ -85,7 +85,11 @@ __all__ = [
     "null_model",
     "COMPACT_WINDOW_CELLS",
     "CFAR_SETTINGS",
+    "CFAR_NAMES",
+    "DEFAULT_CFAR",
     "cfar_options",
+    "check_cfar",
+    "cfar_null_model",
     "ec_density",
     "max_tail",
     "resels_box",
@@ -99,22 +103,31 @@ _FOUR_LN2 = 4 * log(2)
 #: beads' single-scattering peak under the surface, attenuation), and about 20–25 lateral cells, a line in
 #: 2-D, a square in 3-D, narrow enough to follow the single-scattering level's lateral concentration.
 COMPACT_WINDOW_CELLS: dict[int, tuple[float, float]] = {2: (10.0, 1.0), 3: (2.0, 1.0)}
-#: Named CFAR settings (`cfar_options`): "default" — ± 6 × ± 3 cells, censoring at 8× the per-depth median,
-#: the node in its own training; "compact" — the compact window, the cell under test's ± 0.5 cell left out of
-#: its own level, censoring only at 30× the window's uncensored mean (calibrated on the focused
-#: single-scattering speckle, where the default is not; it moves the peak of a target in water to another
-#: of its own lobes, docs/design.md §4.9).
+#: Named CFAR settings (`cfar_null_model`; docs/design.md §4.9): "wide" — ± 6 × ± 3 cells, censoring at 8× the
+#: per-depth median, the node in its own training (`null_model`'s defaults); "compact" — the compact window,
+#: the cell under test's ± 0.5 cell left out of its own level, censoring only at 30× the window's
+#: uncensored mean (calibrated on the focused single-scattering speckle, where "wide" is not; alone it
+#: ranks a target's own lobes differently in water); "both" — the greater of the two levels at every node.
 CFAR_SETTINGS: dict[str, dict[str, Any]] = {
-    "default": {},
+    "wide": {},
     "compact": {"window_cells": "compact", "censor": 30.0, "censor_reference": "local", "cut_guard": 0.5},
 }
+CFAR_NAMES: tuple[str, ...] = ("wide", "compact", "both")
+DEFAULT_CFAR = "wide"
 
 
 def cfar_options(name: str) -> dict[str, Any]:
-    """The `null_model` keyword arguments of a named CFAR setting (`CFAR_SETTINGS`)."""
+    """The `null_model` keyword arguments of a single-window CFAR setting ("wide" or "compact")."""
     if name not in CFAR_SETTINGS:
         raise ValueError(f"cfar: expected one of {sorted(CFAR_SETTINGS)}, got {name!r}")
     return dict(CFAR_SETTINGS[name])
+
+
+def check_cfar(name: str) -> str:
+    """`name` if it is a CFAR setting (`CFAR_NAMES`), else a ValueError naming the choices."""
+    if name not in CFAR_NAMES:
+        raise ValueError(f"cfar: expected one of {', '.join(CFAR_NAMES)}, got {name!r}")
+    return name
 
 
 SURE_SIGNIFICANCE = 30.0  # S of a decided peak, left out of the map's own tail fit (module doc, step 2b)
@@ -482,4 +495,35 @@ def null_model(
         vis,
         tail_fit,
         tuple(max(1, int(np.ceil(2.0 * c / s))) for c, s in zip(cells, grid.spacing, strict=True)),
+    )
+
+
+def cfar_null_model(
+    setting: str,
+    gamma: np.ndarray,
+    grid: Grid,
+    resolution: tuple[float, float],
+    level: np.ndarray | None = None,
+    visible: np.ndarray | None = None,
+) -> NullModel:
+    """The null model of a named CFAR setting (`CFAR_NAMES`, docs/design.md §4.9). "both": the greater of the
+    "wide" and "compact" levels at every node (a greatest-of CFAR across two training windows), with the
+    training-cell count of the one chosen; each window under-estimates where the other does not — the wide
+    one at the focused speckle's lateral concentration and surface peak, the compact one between a target's
+    own lobes in water — so the greater is the conservative estimate. The smoothness is the wide model's."""
+    check_cfar(setting)
+    if setting != "both":
+        return null_model(gamma, grid, resolution, level=level, visible=visible, **CFAR_SETTINGS[setting])
+    wide = null_model(gamma, grid, resolution, level=level, visible=visible)
+    compact = null_model(gamma, grid, resolution, level=level, visible=visible, **CFAR_SETTINGS["compact"])
+    use = compact.power > wide.power
+    power = np.where(use, compact.power, wide.power)
+    g2 = np.asarray(gamma, np.float64) ** 2
+    stat = g2 / np.maximum(power.astype(np.float64), 1e-300)
+    return replace(
+        wide,
+        power=np.ascontiguousarray(power, np.float32),
+        train_cells=np.where(use, compact.train_cells, wide.train_cells).astype(np.float32),
+        statistic=np.minimum(stat, np.finfo(np.float32).max).astype(np.float32),
+        _significance=None,
     )

@@ -14,7 +14,7 @@ import numpy as np
 
 from .acquisition import Acquisition, PlaneWaveData
 from .background import NullLevel
-from .cfar import NullModel, cfar_options, null_model
+from .cfar import DEFAULT_CFAR, NullModel, cfar_null_model
 from .fingerprint import Fingerprint
 from .grid import Grid
 from .likelihood import Imager
@@ -52,8 +52,7 @@ def null_of(
     `image`: the frame's confocal image when the caller has made it (the single-scattering level uses it)."""
     res = resolution_of(grid, acq, band)
     lev, vis = level.level(acq, pw, fp, res, gamma=gamma, image=image) if level is not None else (None, None)
-    options = cfar_options(level.cfar) if level is not None else {}
-    return null_model(gamma, grid, res, level=lev, visible=vis, **options)
+    return cfar_null_model(level.cfar if level is not None else DEFAULT_CFAR, gamma, grid, res, level=lev, visible=vis)
 
 
 def locate(

@@ -49,7 +49,7 @@ import numpy as np
 from filterpy.kalman import KalmanFilter
 from scipy.optimize import linear_sum_assignment
 
-from .cfar import NullModel, cfar_options, null_model
+from .cfar import DEFAULT_CFAR, NullModel, cfar_null_model
 from .geometry import from_xyz
 from .grid import Grid
 from .metrics import (
@@ -80,7 +80,7 @@ class TrackerConfig:
     initial_speed_sigma: float = 5e-3  # m/s, prior on a new track's speed
     skip_border: bool = False  # births and gates take interior local maxima only (a heuristic; module doc)
     integrate_frames: int = 1  # K: search the mean of the last K γ-maps (see module doc)
-    cfar: str = "default"  # the CFAR setting of the maps it searches itself (fpcore.cfar.CFAR_SETTINGS)
+    cfar: str = DEFAULT_CFAR  # the CFAR setting of the maps it searches itself (fpcore.cfar.CFAR_NAMES)
 
 
 @dataclass
@@ -264,14 +264,7 @@ class Tracker:
             nm = (nulls or {}).get(name) if searched is g else None
             if nm is None:
                 mid = 0.5 * (self.grid.z[0] + self.grid.z[-1])
-                nm = null_model(
-                    searched,
-                    self.grid,
-                    self._resolution(mid),
-                    level=lv,
-                    visible=visible,
-                    **cfar_options(self.config.cfar),
-                )
+                nm = cfar_null_model(self.config.cfar, searched, self.grid, self._resolution(mid), lv, visible)
             self._update_map(name, g, searched, nm, list((motion or {}).get(name, [])))
         return self.states()
 

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from fpcore import Acquisition, Grid, detect
-from fpcore.cfar import NullModel
+from fpcore.cfar import DEFAULT_CFAR, NullModel
 from fpcore.metrics import DEFAULT_MAX_PFA, Detection
 from fpcore.tracking import Tracker, TrackerConfig
 from fpcore.truth import Truth
@@ -48,7 +48,7 @@ def make_tracker(grid: Grid, settings: Mapping[str, Any]) -> Tracker:
     config = TrackerConfig(
         max_tracks_per_map=int(s["max_tracks_per_map"]),
         integrate_frames=int(s["integrate_frames"]),
-        cfar=str(s.get("cfar", "default")),
+        cfar=str(s.get("cfar", DEFAULT_CFAR)),
     )
     return Tracker(grid, s["wavelength"], s["aperture"], s["bandwidth"], s["c0"], config)
 

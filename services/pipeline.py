@@ -28,7 +28,7 @@ import numpy as np
 from fpcore import Acquisition, Fingerprint, Grid, Imager, NullLevel
 from fpcore.acquisition import PlaneWaveData
 from fpcore.background import NullPower
-from fpcore.cfar import CFAR_SETTINGS, NullModel
+from fpcore.cfar import CFAR_NAMES, DEFAULT_CFAR, NullModel
 from fpcore.locate import null_of, resolution_of
 from fpcore.metrics import DEFAULT_MAX_PFA, Detection
 from fpcore.tracking import Tracker, TrackState
@@ -75,8 +75,8 @@ class PipelineConfig:
     (fpcore.tracking); ``single_scattering_null``: the null level mixes in the single-scattering level of
     docs/design.md §4.9 eq. (B2) (fpcore.speckle_level: for backgrounds dominated by single scattering; it
     costs power on targets that stand out of the confocal image, and makes the image every frame); ``cfar``: the
-    named CFAR setting of the null models and the tracker (fpcore.cfar.CFAR_SETTINGS: "default", or "compact",
-    calibrated on the focused single-scattering speckle, docs/design.md §4.9)."""
+    named CFAR setting of the null models and the tracker (fpcore.cfar.CFAR_NAMES: "wide", "compact" —
+    calibrated on the focused single-scattering speckle — or "both", the greater level; docs/design.md §4.9)."""
 
     band: tuple[float, float] | None = None
     n_freq: int | None = None
@@ -96,11 +96,11 @@ class PipelineConfig:
     track_integrate: int = 1
     memory_budget: int | None = None  # bytes; None: fpcore.budget.memory_budget() (fp --memory-budget, env)
     single_scattering_null: bool = False
-    cfar: str = "default"
+    cfar: str = DEFAULT_CFAR
 
     def __post_init__(self) -> None:
-        if self.cfar not in CFAR_SETTINGS:
-            raise ValueError(f"--cfar: expected one of {sorted(CFAR_SETTINGS)}, got {self.cfar!r}")
+        if self.cfar not in CFAR_NAMES:
+            raise ValueError(f"--cfar: expected one of {', '.join(CFAR_NAMES)}, got {self.cfar!r}")
         if not 0 < self.svd_threshold <= 1:
             raise ValueError(f"--svd-threshold: expected 0 < t <= 1, got {self.svd_threshold}")
         if self.n_peaks < 1:

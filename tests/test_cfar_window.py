@@ -86,3 +86,18 @@ def test_cell_under_test_does_not_train_its_own_level() -> None:
     unguarded = float(null_model(g, grid, RES, **{**compact, "cut_guard": 0.0, "censor": np.inf}).statistic[c])
     assert 0.7 * truth < guarded < 1.3 * truth, (guarded, truth)
     assert unguarded < 0.85 * guarded, (unguarded, guarded)
+
+
+def test_both_takes_the_greater_of_the_wide_and_compact_levels() -> None:
+    """ "both" (fpcore.cfar.cfar_null_model): at every node the greater of the two windows' levels, T = γ² over
+    it, and on the concentrated field it follows the concentration as the compact window does."""
+    from fpcore.cfar import cfar_null_model
+
+    grid = Grid.regular((0, 47 * SPACING), (0, 39 * SPACING), SPACING, y_range=(0, 47 * SPACING))
+    v = bump_variance(grid)
+    core = v > 0.7 * v.max()
+    g = np.abs(speckle(grid.shape, np.random.default_rng(8))) * np.sqrt(v)
+    wide, compact, both = (cfar_null_model(s, g, grid, RES) for s in ("wide", "compact", "both"))
+    assert np.array_equal(both.power, np.maximum(wide.power, compact.power))
+    np.testing.assert_allclose(both.statistic, g.astype(np.float64) ** 2 / both.power, rtol=1e-5)
+    assert both.statistic[core].mean() < 1.35 < wide.statistic[core].mean()

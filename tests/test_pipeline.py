@@ -91,10 +91,10 @@ def test_fp_version(capsys) -> None:
 
 def test_cfar_setting_reaches_the_null_models_and_the_tracker() -> None:
     """`PipelineConfig.cfar` (fp process/track/locate --cfar) is the setting the frame's null models and the
-    tracker use (fpcore.cfar.CFAR_SETTINGS); an unknown name is refused, naming the option."""
+    tracker use (fpcore.cfar.CFAR_NAMES); an unknown name is refused, naming the option."""
     import numpy as np
 
-    from fpcore.cfar import cfar_options, null_model
+    from fpcore.cfar import cfar_null_model
     from fpcore.locate import resolution_of
 
     frames, cal = born_frames(1)
@@ -105,8 +105,8 @@ def test_cfar_setting_reaches_the_null_models_and_the_tracker() -> None:
     fp = res.fingerprints["marker"]
     r = resolution_of(res.grid, res.acq, res.band)
     lev, vis = pipe._level.level(res.acq, res.pw, fp, r)
-    direct = null_model(res.gammas["marker"], res.grid, r, level=lev, visible=vis, **cfar_options("compact"))
-    default = null_model(res.gammas["marker"], res.grid, r, level=lev, visible=vis)
+    direct = cfar_null_model("compact", res.gammas["marker"], res.grid, r, level=lev, visible=vis)
+    default = cfar_null_model("wide", res.gammas["marker"], res.grid, r, level=lev, visible=vis)
     assert np.array_equal(res.nulls["marker"].statistic, direct.statistic)
     assert not np.array_equal(direct.statistic, default.statistic)
     with pytest.raises(ValueError, match="--cfar"):

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from fpcore import Acquisition, Grid
-from fpcore.cfar import CFAR_SETTINGS
+from fpcore.cfar import CFAR_NAMES, DEFAULT_CFAR
 from fpcore.geometry import to_xyz
 from fpcore.locate import resolution_of
 from fpcore.metrics import DEFAULT_MAX_PFA
@@ -71,10 +71,11 @@ def add_fingerprint_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--cfar",
-        choices=sorted(CFAR_SETTINGS),
-        default="default",
-        help="the CFAR setting of the null model (docs/design.md §4.9): 'compact' (± 1 axial cell, a guard around "
-        "the node, censoring at 30×) is calibrated on single-scattering speckle, where 'default' is not",
+        choices=CFAR_NAMES,
+        default=DEFAULT_CFAR,
+        help=f"the CFAR setting of the null model (docs/design.md §4.9; default {DEFAULT_CFAR}): 'wide' (± 6 × ± 3 "
+        "cells), 'compact' (± 1 axial cell, a guard around the node: calibrated on single-scattering speckle, "
+        "where 'wide' is not) or 'both' (the greater of the two levels)",
     )
     p.add_argument("--dataset", help="dataset name inside the UFF file(s) when there are several")
 

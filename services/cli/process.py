@@ -13,7 +13,7 @@ import dataclasses
 import json
 import logging
 
-from fpcore.cfar import CFAR_SETTINGS
+from fpcore.cfar import CFAR_NAMES, DEFAULT_CFAR
 from fpcore.geometry import to_xyz
 from fpcore.metrics import DEFAULT_MAX_PFA
 from services.bus import add_bus_arguments, bus_from_args, open_session, stop_on_signals, tune_malloc, wait_until
@@ -86,10 +86,11 @@ def add_process_parser(sub: argparse._SubParsersAction) -> None:
     )
     img.add_argument(
         "--cfar",
-        choices=sorted(CFAR_SETTINGS),
-        default="default",
-        help="the CFAR setting of the null model (docs/design.md §4.9): 'compact' (± 1 axial cell, a guard around "
-        "the node, censoring at 30×) is calibrated on single-scattering speckle, where 'default' is not",
+        choices=CFAR_NAMES,
+        default=DEFAULT_CFAR,
+        help=f"the CFAR setting of the null model (docs/design.md §4.9; default {DEFAULT_CFAR}): 'wide' (± 6 × ± 3 "
+        "cells), 'compact' (± 1 axial cell, a guard around the node: calibrated on single-scattering speckle, "
+        "where 'wide' is not) or 'both' (the greater of the two levels)",
     )
     img.add_argument(
         "--map-encoding",
