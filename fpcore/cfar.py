@@ -26,8 +26,9 @@ for the maximum, Worsley et al. 1996):
    ± 0.5 cell out of its own level (`cut_guard`) and censors only nodes 30× above the window's uncensored
    mean: it follows the single-scattering level's peak under the surface and its lateral concentration,
    which the physical level does not carry, and is calibrated on the focused speckle where the default is
-   not (docs/design.md §4.9, measured). Optionally (`greatest_of`, off by
-   default) the level is the greater of the window's mean and the means of its two halves along each
+   not (docs/design.md §4.9, measured); `cfar_null_model("both", …)` takes the greater of the two levels.
+   Neither is the default: in water they rank a target's own lobes differently. Optionally (`greatest_of`,
+   off by default) the level is the greater of the window's mean and the means of its two halves along each
    lateral axis (GO-CFAR, Hansen & Sawyers 1980), so that a level edge — the border of the insonified
    region — is not averaged into its bright side; it halved the false alarms on the 2-D diffusion fog
    under the previous window but loses targets whose own sidelobes fill one half (docs/design.md §4.9).
