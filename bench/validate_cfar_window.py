@@ -6,7 +6,8 @@
 
 One frame per simulated medium (frames of one medium are correlated), the quick rig, the default grid (the
 record's whole time window) and the physical null level P·A of eq. (B1), exactly what `fpcore.locate` uses;
-each γ-map goes through `fpcore.cfar.cfar_null_model` with every setting: "wide" (± 6 × ± 3 cells, censoring at
+each γ-map's null model is made with every setting (`fpcore.cfar.CFAR_SETTINGS`, "both" by `greater_level`) and
+searched by `fpcore.detect` as `fpcore.locate` does: "wide" (± 6 × ± 3 cells, censoring at
 8× the per-depth median), "compact" (`COMPACT_WINDOW_CELLS`, the cell under test guarded, censoring at 30× the
 local mean) and "both" (the greater of the two levels). Target-free media: the fraction whose most significant
 node reports PFA < 0.05 / 0.01 / 1e-3 (calibrated: ≤ α), with Clopper–Pearson intervals, and the depths of the
@@ -30,19 +31,20 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from validate_pfa import interval  # noqa: E402
 
 import fpcore  # noqa: E402
-from fpcore.cfar import CFAR_NAMES, cfar_null_model  # noqa: E402
+from fpcore.cfar import CFAR_NAMES, CFAR_SETTINGS, NullModel, greater_level, null_model  # noqa: E402
 from fpcore.grid import Grid  # noqa: E402
 from fpcore.locate import resolution_of  # noqa: E402
+from fpcore.metrics import detect  # noqa: E402
 from fpcore.simulate import scenario  # noqa: E402
 
 
-def top_peak(g: np.ndarray, grid: Grid, res: tuple[float, float], lev: np.ndarray, vis: np.ndarray, setting: str):
-    """(PFA, position in (x, y, z) metres) of the map's most significant visible node."""
-    nm = cfar_null_model(setting, g, grid, res, level=lev, visible=vis)
-    sig = np.where(vis, nm.significance, -np.inf)
-    k = np.unravel_index(int(np.argmax(sig)), sig.shape)
-    pos = [grid.x[k[0]], grid.y[k[1]], grid.z[k[2]]] if g.ndim == 3 else [grid.x[k[0]], 0.0, grid.z[k[1]]]
-    return nm.pfa(float(sig[k])), np.array(pos, float)
+def models(g: np.ndarray, grid: Grid, res: tuple[float, float], lev: np.ndarray, vis: np.ndarray) -> dict:
+    """The null model of every CFAR setting (`CFAR_NAMES`), "both" made from the two others' (no third pass)."""
+    out: dict[str, NullModel] = {
+        name: null_model(g, grid, res, level=lev, visible=vis, **kw) for name, kw in CFAR_SETTINGS.items()
+    }
+    out["both"] = greater_level(out["wide"], out["compact"], g)
+    return out
 
 
 def main() -> None:
@@ -84,14 +86,17 @@ def main() -> None:
             acq = sc.frame(0)
             pw = imager.plane_waves(acq)
             res = resolution_of(grid, acq, sc.band)
+            lam, bw = acq.c0 / acq.probe.centre_frequency, sc.band[1] - sc.band[0]
             truth = {t.name: np.asarray(t.position) for t in (acq.ground_truth.targets if acq.ground_truth else [])}
             for tname, fp in fps.items():
                 if not args.targets and tname != next(iter(fps)):
                     continue  # one map per target-free medium: independent maps
                 g = imager.gamma(pw, fp)
                 lev, vis = level.level(acq, pw, fp, res)
-                for cname in CFAR_NAMES:
-                    p, pos = top_peak(g, grid, res, lev, vis, cname)
+                for cname, nm in models(g, grid, res, lev, vis).items():
+                    # the detector's own most significant peak (fpcore.detect, as fpcore.locate runs it)
+                    top = detect(g, grid, lam, acq.probe.aperture[0], bw, acq.c0, null=nm, max_pfa=None)[0]
+                    p, pos = top.pfa, np.asarray(top.position_m, float)
                     pfas[cname].append(p)
                     if args.targets and tname in truth:
                         hits[cname].append(p < 1e-3 and float(np.linalg.norm(pos - truth[tname])) < 1e-3)

@@ -21,7 +21,7 @@ for the maximum, Worsley et al. 1996):
    what remains is averaged over a training window of ± `window_cells` resolution cells around each
    node (± 6 lateral × ± 3 axial), censoring nodes that stand out (T > `censor` against a robust
    per-depth median) together with a guard region of one resolution cell: a censored cell-averaging
-   CFAR. The **compact** setting (`cfar_options("compact")`, `fp … --cfar compact`) trains on ± 1 axial
+   CFAR. The **compact** setting (`CFAR_SETTINGS["compact"]`, `fp … --cfar compact`) trains on ± 1 axial
    cell by ± 10 lateral cells in 2-D, ± 2 in 3-D (`COMPACT_WINDOW_CELLS`), leaves the cell under test's
    ± 0.5 cell out of its own level (`cut_guard`) and censors only nodes 30× above the window's uncensored
    mean: it follows the single-scattering level's peak under the surface and its lateral concentration,
@@ -88,9 +88,9 @@ __all__ = [
     "CFAR_SETTINGS",
     "CFAR_NAMES",
     "DEFAULT_CFAR",
-    "cfar_options",
     "check_cfar",
     "cfar_null_model",
+    "greater_level",
     "ec_density",
     "max_tail",
     "resels_box",
@@ -100,7 +100,7 @@ __all__ = [
 
 _FOUR_LN2 = 4 * log(2)
 #: The compact training window's half-widths (lateral, axial) in resolution cells, by the map's dimension
-#: (``cfar_options("compact")``; docs/design.md §4.9): ± 1 axial cell, where the level changes fastest (the
+#: (``CFAR_SETTINGS["compact"]``; docs/design.md §4.9): ± 1 axial cell, where the level changes fastest (the
 #: beads' single-scattering peak under the surface, attenuation), and about 20–25 lateral cells, a line in
 #: 2-D, a square in 3-D, narrow enough to follow the single-scattering level's lateral concentration.
 COMPACT_WINDOW_CELLS: dict[int, tuple[float, float]] = {2: (10.0, 1.0), 3: (2.0, 1.0)}
@@ -113,21 +113,14 @@ CFAR_SETTINGS: dict[str, dict[str, Any]] = {
     "wide": {},
     "compact": {"window_cells": "compact", "censor": 30.0, "censor_reference": "local", "cut_guard": 0.5},
 }
-CFAR_NAMES: tuple[str, ...] = ("wide", "compact", "both")
+CFAR_NAMES: tuple[str, ...] = (*CFAR_SETTINGS, "both")
 DEFAULT_CFAR = "wide"
 
 
-def cfar_options(name: str) -> dict[str, Any]:
-    """The `null_model` keyword arguments of a single-window CFAR setting ("wide" or "compact")."""
-    if name not in CFAR_SETTINGS:
-        raise ValueError(f"cfar: expected one of {sorted(CFAR_SETTINGS)}, got {name!r}")
-    return dict(CFAR_SETTINGS[name])
-
-
-def check_cfar(name: str) -> str:
-    """`name` if it is a CFAR setting (`CFAR_NAMES`), else a ValueError naming the choices."""
+def check_cfar(name: str, field: str = "cfar") -> str:
+    """`name` if it is a CFAR setting (`CFAR_NAMES`), else a ValueError naming `field` and the choices."""
     if name not in CFAR_NAMES:
-        raise ValueError(f"cfar: expected one of {', '.join(CFAR_NAMES)}, got {name!r}")
+        raise ValueError(f"{field}: expected one of {', '.join(CFAR_NAMES)}, got {name!r}")
     return name
 
 
@@ -368,7 +361,7 @@ def null_model(
     window (± `window_cells` cells laterally and in depth, default ± 6 × ± 3: measured on 2-D fog, ± 12 × ± 6
     over the physical level gained power on sparse scatterers but let the false alarms rise to 3α at
     α = 0.01; "compact": `COMPACT_WINDOW_CELLS` of the map's dimension) and of the guard region around
-    censored nodes. `cfar_options("compact")` gives the settings calibrated on the focused speckle.
+    censored nodes. `CFAR_SETTINGS["compact"]` holds the settings calibrated on the focused speckle.
     level: a physical null level of γ² known up to a constant (fpcore.background: the data's energy in
     the fingerprint's own time support times the aperture factor); the CFAR then only corrects what it
     leaves (default: none, γ² itself). visible: nodes where the fingerprint can be tested (the others
@@ -478,8 +471,9 @@ def null_model(
     # As in radar CA-CFAR, the cell under test's own guard region is not training by design: nodes
     # censored within ± `own_guard` cells of a node (its own peak and sidelobes) do not count as missing.
     count = box_sum(train, sizes)
-    if gsizes is not None:
-        count = np.where(count - box_sum(train, gsizes) > 0.25 * count, count - box_sum(train, gsizes), count)
+    if gsizes is not None:  # the window less the guard box, as in local_mean
+        ring = count - box_sum(train, gsizes)
+        count = np.where(ring > 0.25 * count, ring, count)
     if own_guard > 0:
         near = [max(1, int(np.ceil(own_guard * c / s))) * 2 + 1 for c, s in zip(cells, grid.spacing, strict=True)]
         censored = (vis & (train == 0)).astype(np.float64)
@@ -499,6 +493,22 @@ def null_model(
     )
 
 
+def greater_level(wide: NullModel, compact: NullModel, gamma: np.ndarray) -> NullModel:
+    """The "both" setting from its two models (`cfar_null_model`; a greatest-of CFAR, Hansen & Sawyers 1980,
+    across two training windows): at every node the greater level, the
+    training-cell count of the window chosen, T = γ² over that level; the smoothness is the wide model's."""
+    use = compact.power > wide.power
+    power = np.where(use, compact.power, wide.power)
+    stat = np.asarray(gamma, np.float64) ** 2 / np.maximum(power.astype(np.float64), 1e-300)
+    return replace(
+        wide,
+        power=np.ascontiguousarray(power, np.float32),
+        train_cells=np.where(use, compact.train_cells, wide.train_cells).astype(np.float32),
+        statistic=np.minimum(stat, np.finfo(np.float32).max).astype(np.float32),
+        _significance=None,
+    )
+
+
 def cfar_null_model(
     setting: str,
     gamma: np.ndarray,
@@ -511,20 +521,10 @@ def cfar_null_model(
     "wide" and "compact" levels at every node (a greatest-of CFAR across two training windows), with the
     training-cell count of the one chosen; each window under-estimates where the other does not — the wide
     one at the focused speckle's lateral concentration and surface peak, the compact one between a target's
-    own lobes in water — so the greater is the conservative estimate. The smoothness is the wide model's."""
+    own lobes in water — so the greater is the conservative estimate (`greater_level`)."""
     check_cfar(setting)
     if setting != "both":
         return null_model(gamma, grid, resolution, level=level, visible=visible, **CFAR_SETTINGS[setting])
     wide = null_model(gamma, grid, resolution, level=level, visible=visible)
     compact = null_model(gamma, grid, resolution, level=level, visible=visible, **CFAR_SETTINGS["compact"])
-    use = compact.power > wide.power
-    power = np.where(use, compact.power, wide.power)
-    g2 = np.asarray(gamma, np.float64) ** 2
-    stat = g2 / np.maximum(power.astype(np.float64), 1e-300)
-    return replace(
-        wide,
-        power=np.ascontiguousarray(power, np.float32),
-        train_cells=np.where(use, compact.train_cells, wide.train_cells).astype(np.float32),
-        statistic=np.minimum(stat, np.finfo(np.float32).max).astype(np.float32),
-        _significance=None,
-    )
+    return greater_level(wide, compact, gamma)

@@ -28,7 +28,7 @@ import numpy as np
 from fpcore import Acquisition, Fingerprint, Grid, Imager, NullLevel
 from fpcore.acquisition import PlaneWaveData
 from fpcore.background import NullPower
-from fpcore.cfar import CFAR_NAMES, DEFAULT_CFAR, NullModel
+from fpcore.cfar import DEFAULT_CFAR, NullModel, check_cfar
 from fpcore.locate import null_of, resolution_of
 from fpcore.metrics import DEFAULT_MAX_PFA, Detection
 from fpcore.tracking import Tracker, TrackState
@@ -99,8 +99,7 @@ class PipelineConfig:
     cfar: str = DEFAULT_CFAR
 
     def __post_init__(self) -> None:
-        if self.cfar not in CFAR_NAMES:
-            raise ValueError(f"--cfar: expected one of {', '.join(CFAR_NAMES)}, got {self.cfar!r}")
+        check_cfar(self.cfar, "--cfar")
         if not 0 < self.svd_threshold <= 1:
             raise ValueError(f"--svd-threshold: expected 0 < t <= 1, got {self.svd_threshold}")
         if self.n_peaks < 1:

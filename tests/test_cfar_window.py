@@ -5,7 +5,7 @@ transmit beams and the receive aperture overlap) and peaks a millimetre under th
 the physical level of eq. (B1) has neither. A Gaussian random field with such a variance, and no level
 given, stands in for it here: γ² is exponential around its local mean by construction, so a right local
 level makes T = γ²/level average 1 wherever the variance is high. The compact CFAR setting
-(`cfar_options("compact")`) follows it; the default window (± 6 × ± 3 cells, censoring at 8× the per-depth
+(`CFAR_SETTINGS["compact"]`) follows it; the default window (± 6 × ± 3 cells, censoring at 8× the per-depth
 median) is shown to miss it.
 """
 
@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-from fpcore.cfar import COMPACT_WINDOW_CELLS, cfar_options, null_model
+from fpcore.cfar import CFAR_SETTINGS, COMPACT_WINDOW_CELLS, check_cfar, null_model
 from fpcore.grid import Grid
 
 SPACING = 0.3e-3
@@ -46,7 +46,7 @@ def test_compact_window_follows_a_lateral_and_depth_concentration() -> None:
     new, old = [], []
     for _ in range(6):
         g = np.abs(speckle(grid.shape, rng)) * np.sqrt(v)
-        new.append(null_model(g, grid, RES, **cfar_options("compact")).statistic[core].mean())
+        new.append(null_model(g, grid, RES, **CFAR_SETTINGS["compact"]).statistic[core].mean())
         old.append(null_model(g, grid, RES).statistic[core].mean())
     # Near the right level: T averages 1 on the core up to the window's own averaging of a peaked profile
     # (it sits at the top of both peaks: ≈ 1.2 measured here).
@@ -60,7 +60,7 @@ def test_compact_window_follows_a_lateral_and_depth_concentration() -> None:
 def test_compact_window_by_dimension_and_unknown_setting() -> None:
     assert COMPACT_WINDOW_CELLS[2] == (10.0, 1.0) and COMPACT_WINDOW_CELLS[3] == (2.0, 1.0)
     try:
-        cfar_options("narrow")
+        check_cfar("narrow")
     except ValueError as exc:
         assert "cfar" in str(exc) and "compact" in str(exc)
     else:
@@ -81,7 +81,7 @@ def test_cell_under_test_does_not_train_its_own_level() -> None:
     contrast = 20.0  # target power over the speckle's mean: below the censoring threshold (30)
     g = np.abs(field + np.sqrt(contrast) * blob)
     truth = float(g[c] ** 2)  # γ² at the target over a unit level
-    compact = cfar_options("compact")
+    compact = CFAR_SETTINGS["compact"]
     guarded = float(null_model(g, grid, RES, **compact).statistic[c])
     unguarded = float(null_model(g, grid, RES, **{**compact, "cut_guard": 0.0, "censor": np.inf}).statistic[c])
     assert 0.7 * truth < guarded < 1.3 * truth, (guarded, truth)

@@ -63,6 +63,12 @@ def add_fingerprint_arguments(p: argparse.ArgumentParser) -> None:
         default=DEFAULT_MAX_PFA,
         help=f"report a detection only below this calibrated false-alarm probability (default {DEFAULT_MAX_PFA:g})",
     )
+    add_null_arguments(p)
+    p.add_argument("--dataset", help="dataset name inside the UFF file(s) when there are several")
+
+
+def add_null_arguments(p: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """The null model's options (docs/design.md §4.9), shared by fp locate, fp track and fp process/worker."""
     p.add_argument(
         "--null-single-scattering",
         action="store_true",
@@ -77,7 +83,6 @@ def add_fingerprint_arguments(p: argparse.ArgumentParser) -> None:
         "cells), 'compact' (± 1 axial cell, a guard around the node: calibrated on single-scattering speckle, "
         "where 'wide' is not) or 'both' (the greater of the two levels)",
     )
-    p.add_argument("--dataset", help="dataset name inside the UFF file(s) when there are several")
 
 
 def calibration_name(path: str, cal: Acquisition) -> str:

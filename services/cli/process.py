@@ -13,11 +13,10 @@ import dataclasses
 import json
 import logging
 
-from fpcore.cfar import CFAR_NAMES, DEFAULT_CFAR
 from fpcore.geometry import to_xyz
 from fpcore.metrics import DEFAULT_MAX_PFA
 from services.bus import add_bus_arguments, bus_from_args, open_session, stop_on_signals, tune_malloc, wait_until
-from services.cli.fingerprint_args import add_velocity_arguments
+from services.cli.fingerprint_args import add_null_arguments, add_velocity_arguments
 from services.cli.imaging import add_imaging_arguments, grid_ranges, int_at_least, number_in
 from services.cli.scenario_args import add_scenario_arguments, scenario_kwargs
 from services.models import parse_model
@@ -78,20 +77,7 @@ def add_process_parser(sub: argparse._SubParsersAction) -> None:
         help="heuristic: skip maxima within the diffraction resolution of the grid's border",
     )
     img.add_argument("--no-image", action="store_true", help="do not publish the confocal image")
-    img.add_argument(
-        "--null-single-scattering",
-        action="store_true",
-        help="mix the single-scattering level into the null level (docs/design.md §4.9, eq. B2): for backgrounds "
-        "dominated by single scattering; costs power on targets that stand out of the confocal image",
-    )
-    img.add_argument(
-        "--cfar",
-        choices=CFAR_NAMES,
-        default=DEFAULT_CFAR,
-        help=f"the CFAR setting of the null model (docs/design.md §4.9; default {DEFAULT_CFAR}): 'wide' (± 6 × ± 3 "
-        "cells), 'compact' (± 1 axial cell, a guard around the node: calibrated on single-scattering speckle, "
-        "where 'wide' is not) or 'both' (the greater of the two levels)",
-    )
+    add_null_arguments(img)
     img.add_argument(
         "--map-encoding",
         choices=("uint16", "float32"),
