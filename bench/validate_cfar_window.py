@@ -7,12 +7,12 @@
 One frame per simulated medium (frames of one medium are correlated), the quick rig, the default grid (the
 record's whole time window) and the physical null level P·A of eq. (B1), exactly what `fpcore.locate` uses;
 each γ-map's null model is made with every setting (`fpcore.cfar.CFAR_SETTINGS`, "both" by `greater_level`) and
-searched by `fpcore.detect` as `fpcore.locate` does: "wide" (± 6 × ± 3 cells, censoring at
-8× the per-depth median), "compact" (`COMPACT_WINDOW_CELLS`, the cell under test guarded, censoring at 30× the
-local mean) and "both" (the greater of the two levels). Target-free media: the fraction whose most significant
-node reports PFA < 0.05 / 0.01 / 1e-3 (calibrated: ≤ α), with Clopper–Pearson intervals, and the depths of the
-peaks below 0.05. With ``--targets``: every target's map, detected when that node is within 1 mm of the truth
-at PFA < 1e-3.
+searched by `fpcore.detect` as `fpcore.locate` does: "wide" (± 6 × ± 3 cells, censoring at 8× the per-depth
+median; the earlier default), "compact" (the default: `COMPACT_WINDOW_CELLS`, the cell under test guarded,
+censoring at 30× the window's median) and "both" (the greater of the two levels). Target-free media: the
+fraction whose most significant node reports PFA < 0.05 / 0.01 / 1e-3 (calibrated: ≤ α), with Clopper–Pearson
+intervals, and the depths of the peaks below 0.05. With ``--targets``: every target's map, detected when that
+node is within 1 mm of the truth at PFA < 1e-3.
 """
 
 from __future__ import annotations

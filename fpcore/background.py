@@ -177,8 +177,9 @@ class NullLevel:
     confocal image (module doc there). `last_shares` holds the last fit's shares of depth rows set by
     each component (diffuse, single scattering).
 
-    `cfar`: the named CFAR setting that corrects this level (fpcore.cfar.CFAR_NAMES: "wide", "compact" —
-    calibrated on the beads' focused single-scattering speckle — or "both"; docs/design.md §4.9).
+    `cfar`: the named CFAR setting that corrects this level (fpcore.cfar.CFAR_NAMES: "compact", the default —
+    calibrated on the beads' focused single-scattering speckle —, "wide", the earlier default, or "both";
+    docs/design.md §4.9).
     """
 
     def __init__(

@@ -21,13 +21,17 @@ for the maximum, Worsley et al. 1996):
    what remains is averaged over a training window of ± `window_cells` resolution cells around each
    node (± 6 lateral × ± 3 axial), censoring nodes that stand out (T > `censor` against a robust
    per-depth median) together with a guard region of one resolution cell: a censored cell-averaging
-   CFAR. The **compact** setting (`CFAR_SETTINGS["compact"]`, `fp … --cfar compact`) trains on ± 1 axial
-   cell by ± 10 lateral cells in 2-D, ± 2 in 3-D (`COMPACT_WINDOW_CELLS`), leaves the cell under test's
-   ± 0.5 cell out of its own level (`cut_guard`) and censors only nodes 30× above the window's uncensored
-   mean: it follows the single-scattering level's peak under the surface and its lateral concentration,
-   which the physical level does not carry, and is calibrated on the focused speckle where the default is
-   not (docs/design.md §4.9, measured); `cfar_null_model("both", …)` takes the greater of the two levels.
-   Neither is the default: in water they rank a target's own lobes differently. Optionally (`greatest_of`,
+   CFAR. The **compact** setting, the default (`CFAR_SETTINGS["compact"]`, `DEFAULT_CFAR`), trains on ± 1
+   axial cell by ± 10 lateral cells in 2-D, ± 2 in 3-D (`COMPACT_WINDOW_CELLS`), leaves the cell under
+   test's ± 0.5 cell out of its own level (`cut_guard`) and censors the nodes 30× above the window's median
+   (`local_median`, one node per resolution cell; `censor_reference="median"`): it follows the
+   single-scattering level's peak under the surface and its lateral concentration, which the physical level
+   does not carry, and is calibrated on the focused speckle where "wide" is not (docs/design.md §4.9,
+   measured). The median is the reference because half the window may be a target's own main lobe and
+   sidelobes without raising it: in water, where those lobes are the whole background, a reference that
+   they raise (the window's mean) left them in the training and masked the target. "wide" (± 6 × ± 3 cells,
+   censoring at 8× the per-depth median, the node in its own level) is the earlier default, kept as an
+   option; `cfar_null_model("both", …)` takes the greater of the two levels. Optionally (`greatest_of`,
    off by default) the level is the greater of the window's mean and the means of its two halves along each
    lateral axis (GO-CFAR, Hansen & Sawyers 1980), so that a level edge — the border of the insonified
    region — is not averaged into its bright side; it halved the false alarms on the 2-D diffusion fog
@@ -62,6 +66,11 @@ for the maximum, Worsley et al. 1996):
    volumes in FWHM units); PFA = 1 − exp(−E[EC]). For a box of N independent-looking resels this is
    ≈ N e^{−t} times a factor t^{D/2} that the "L independent cells" model misses — which is why that
    model, even with the right exponent, under-reports false alarms in the tail.
+5. **Search order** (`NullModel.ranking`; fpcore.metrics.detect, the tracker's gates): the maxima of S,
+   except among decided nodes (S ≥ `SURE_SIGNIFICANCE`), which are ranked by γ itself. There the PFA is
+   beyond anything the null model is calibrated for, and the ratio to a local level is shaped by the
+   target's own lobes (in water they are the whole background: the compact window put the Born marker's
+   most significant node on a lobe 0.95 mm off); γ, the likelihood (paper eq. loc), picks the position.
 
 The calibration of this PFA is checked on target-free maps (i.i.d. noise, and the simulator's 2-D and
 3-D fog) in `tests/test_metrics.py` and `bench/validate_pfa.py`: the fraction of maps whose maximum
@@ -70,13 +79,15 @@ reports PFA < α stays ≤ α (measured figures: README, docs/design.md §4.9).
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, replace
 from math import gamma as gamma_fn
 from math import log, pi
 from typing import Any
 
 import numpy as np
-from scipy.ndimage import uniform_filter, uniform_filter1d
+from numpy.lib.stride_tricks import sliding_window_view
+from scipy.ndimage import map_coordinates, uniform_filter, uniform_filter1d
 from scipy.special import digamma, gammaln, kve
 
 from .grid import Grid
@@ -104,17 +115,17 @@ _FOUR_LN2 = 4 * log(2)
 #: beads' single-scattering peak under the surface, attenuation), and about 20–25 lateral cells, a line in
 #: 2-D, a square in 3-D, narrow enough to follow the single-scattering level's lateral concentration.
 COMPACT_WINDOW_CELLS: dict[int, tuple[float, float]] = {2: (10.0, 1.0), 3: (2.0, 1.0)}
-#: Named CFAR settings (`cfar_null_model`; docs/design.md §4.9): "wide" — ± 6 × ± 3 cells, censoring at 8× the
-#: per-depth median, the node in its own training (`null_model`'s defaults); "compact" — the compact window,
-#: the cell under test's ± 0.5 cell left out of its own level, censoring only at 30× the window's
-#: uncensored mean (calibrated on the focused single-scattering speckle, where "wide" is not; alone it
-#: ranks a target's own lobes differently in water); "both" — the greater of the two levels at every node.
+#: Named CFAR settings (`cfar_null_model`; docs/design.md §4.9): "compact", the default — the compact window,
+#: the cell under test's ± 0.5 cell left out of its own level, censoring the nodes 30× above the window's
+#: median (calibrated on the focused single-scattering speckle, where "wide" is not, and keeps a target's
+#: own lobes out of its level in water); "wide" — ± 6 × ± 3 cells, censoring at 8× the per-depth median, the
+#: node in its own training (`null_model`'s defaults; the earlier default); "both" — the greater of the two.
 CFAR_SETTINGS: dict[str, dict[str, Any]] = {
     "wide": {},
-    "compact": {"window_cells": "compact", "censor": 30.0, "censor_reference": "local", "cut_guard": 0.5},
+    "compact": {"window_cells": "compact", "censor": 30.0, "censor_reference": "median", "cut_guard": 0.5},
 }
 CFAR_NAMES: tuple[str, ...] = (*CFAR_SETTINGS, "both")
-DEFAULT_CFAR = "wide"
+DEFAULT_CFAR = "compact"
 
 
 def check_cfar(name: str, field: str = "cfar") -> str:
@@ -238,6 +249,15 @@ class NullModel:
                 sig[above] = u + (sig[above] - u) / self._tail_scale
             self._significance = sig.astype(np.float32)
         return self._significance
+
+    def ranking(self, gamma: np.ndarray) -> np.ndarray:
+        """The order in which nodes are searched: S below `SURE_SIGNIFICANCE`; above it, where a peak is
+        decided beyond any calibration (PFA < 1e-9), SURE + γ/max γ — among decided nodes the likelihood
+        (paper eq. loc), not the ratio to a local level that a target's own lobes shape, picks the position."""
+        sig = self.significance.astype(np.float64)
+        g = np.asarray(gamma, np.float64)
+        top = float(g.max()) if g.size else 0.0
+        return np.where(sig >= SURE_SIGNIFICANCE, SURE_SIGNIFICANCE + g / max(top, 1e-300), sig)
 
     @property
     def tail_scale(self) -> float:
@@ -371,11 +391,12 @@ def null_model(
     cut_guard: ± resolution cells around the cell under test left out of its own training mean (the
     radar CA-CFAR's guard cells; 0, the default: the window's mean includes the node itself, which masks a
     target with its own echo). censor_reference: what `censor` compares a node with before it is left out
-    of training — "depth" (default), the robust per-depth median, or "local", the window's uncensored mean
-    around it (with the same guard); censor = inf censors nothing. The "compact" setting censors only
-    nodes 30× above their surroundings (a null node does so with probability e^{−30}): another strong
-    target in the window, not the background's own bright grains, whose removal biased the level low on
-    the focused speckle (§4.9).
+    of training — "depth" (default), the robust per-depth median; "local", the window's uncensored mean
+    around it (with the same guard); or "median", the window's median (`local_median`), which a target's own
+    lobes do not raise. censor = inf censors nothing. The "compact" setting censors only nodes 30× above the
+    window's median (a null node does so with probability ≈ e^{−30}): a target's main lobe and sidelobes and
+    other strong targets in the window, not the background's own bright grains, whose removal biased the
+    level low on the focused speckle (§4.9).
     """
     g2 = np.asarray(gamma, np.float64) ** 2
     if level is not None:
@@ -396,7 +417,7 @@ def null_model(
     ]
     sizes = [min(2 * h + 1, n) for h, n in zip(half, g2.shape, strict=True)]
 
-    if censor_reference not in ("depth", "local"):
+    if censor_reference not in ("depth", "local", "median"):
         raise ValueError(f"censor_reference: expected 'depth' or 'local', got {censor_reference!r}")
     # The cell under test's guard box (nodes per axis), left out of its own training mean.
     gsizes = (
@@ -426,7 +447,9 @@ def null_model(
     flat = np.where(vis, g2, np.nan).reshape(-1, nz)
     med = np.nanmedian(np.where(np.isnan(flat).all(axis=0, keepdims=True), 1.0, flat), axis=0) / np.log(2)
     med = uniform_filter1d(med, sizes[-1], mode="nearest")
-    if censor_reference == "local" and np.isfinite(censor):
+    if censor_reference == "median" and np.isfinite(censor):
+        t0 = g2 / np.maximum(local_median(g2, vis, half, cells, grid.spacing), 1e-300)
+    elif censor_reference == "local" and np.isfinite(censor):
         t0 = g2 / np.maximum(np.nan_to_num(local_mean(g2, vis.astype(np.float64)), nan=np.inf), 1e-300)
     else:
         t0 = g2 / np.maximum(med, 1e-300)
@@ -491,6 +514,29 @@ def null_model(
         tail_fit,
         tuple(max(1, int(np.ceil(2.0 * c / s))) for c, s in zip(cells, grid.spacing, strict=True)),
     )
+
+
+def local_median(
+    g2: np.ndarray, visible: np.ndarray, half: list[int], cells: list[float], spacing: tuple[float, ...]
+) -> np.ndarray:
+    """A robust local level: the median of γ² over the training window (± `half` nodes per axis) of the
+    visible nodes on a lattice of one node per resolution cell (nearly independent samples), over ln 2 (the
+    exponential law's median/mean), linearly interpolated back to the grid. Half the window may be a
+    target's own main lobe and sidelobes without raising it (a censoring reference; §4.9)."""
+    stride = [max(1, int(round(c / s))) for c, s in zip(cells, spacing, strict=True)]
+    coarse = np.where(visible, g2, np.nan)[tuple(slice(st // 2, None, st) for st in stride)]
+    hc = [max(1, int(round(h / st))) for h, st in zip(half, stride, strict=True)]
+    padded = np.pad(coarse, [(h, h) for h in hc], constant_values=np.nan)
+    flat = sliding_window_view(padded, [2 * h + 1 for h in hc]).reshape(*coarse.shape, -1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # windows with no visible node: NaN, filled below
+        med = np.nanmedian(flat, axis=-1) / log(2)
+    ok = np.isfinite(med)
+    med = np.where(ok, med, float(np.median(med[ok])) if ok.any() else 1.0)
+    coords = np.meshgrid(
+        *[(np.arange(n) - st // 2) / st for n, st in zip(g2.shape, stride, strict=True)], indexing="ij"
+    )
+    return map_coordinates(med, coords, order=1, mode="nearest")
 
 
 def greater_level(wide: NullModel, compact: NullModel, gamma: np.ndarray) -> NullModel:

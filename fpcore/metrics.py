@@ -213,7 +213,7 @@ def detect(
     res_mid, axial_res = resolution_cell(wavelength, aperture, bandwidth, c0, mid)
     nm = null if null is not None else null_model(g, grid, (res_mid, axial_res), level=level, visible=visible)
     sig = nm.significance
-    work = np.where(nm.visible, sig, -np.inf).astype(np.float64)
+    work = np.where(nm.visible, nm.ranking(g), -np.inf).astype(np.float64)
     mesh = _mesh(grid)
     if interior:
         work[~interior_peaks(g, grid, res_mid, mesh)] = -np.inf

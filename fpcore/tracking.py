@@ -287,7 +287,7 @@ class Tracker:
             candidates = inside & allowed  # a border maximum is the flank of something outside
         if not candidates.any():
             return None
-        masked = np.where(candidates, nm.significance, -np.inf)
+        masked = np.where(candidates, nm.ranking(gamma), -np.inf)
         idx = tuple(int(i) for i in np.unravel_index(int(np.argmax(masked)), gamma.shape))
         pos3, val = refine_peak(gamma, self.grid, idx)
         radius_nodes = np.array([radius / d for d in self.grid.spacing])

@@ -75,8 +75,9 @@ class PipelineConfig:
     (fpcore.tracking); ``single_scattering_null``: the null level mixes in the single-scattering level of
     docs/design.md §4.9 eq. (B2) (fpcore.speckle_level: for backgrounds dominated by single scattering; it
     costs power on targets that stand out of the confocal image, and makes the image every frame); ``cfar``: the
-    named CFAR setting of the null models and the tracker (fpcore.cfar.CFAR_NAMES: "wide", "compact" —
-    calibrated on the focused single-scattering speckle — or "both", the greater level; docs/design.md §4.9)."""
+    named CFAR setting of the null models and the tracker (fpcore.cfar.CFAR_NAMES: "compact", the default —
+    calibrated on the focused single-scattering speckle and on water —, "wide", the earlier default, or
+    "both", the greater level; docs/design.md §4.9)."""
 
     band: tuple[float, float] | None = None
     n_freq: int | None = None

@@ -5,8 +5,10 @@ transmit beams and the receive aperture overlap) and peaks a millimetre under th
 the physical level of eq. (B1) has neither. A Gaussian random field with such a variance, and no level
 given, stands in for it here: γ² is exponential around its local mean by construction, so a right local
 level makes T = γ²/level average 1 wherever the variance is high. The compact CFAR setting
-(`CFAR_SETTINGS["compact"]`) follows it; the default window (± 6 × ± 3 cells, censoring at 8× the per-depth
-median) is shown to miss it.
+(`CFAR_SETTINGS["compact"]`, the default) follows it; the wide window (± 6 × ± 3 cells, censoring at 8× the
+per-depth median; the earlier default) is shown to miss it. In water a target's own lobes are the whole
+background around it: the compact window's censoring reference, the window's median, keeps them out of the
+target's level, and among decided nodes γ, not S, picks the position (`NullModel.ranking`).
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-from fpcore.cfar import CFAR_SETTINGS, COMPACT_WINDOW_CELLS, check_cfar, null_model
+from fpcore.cfar import CFAR_SETTINGS, COMPACT_WINDOW_CELLS, SURE_SIGNIFICANCE, check_cfar, local_median, null_model
 from fpcore.grid import Grid
 
 SPACING = 0.3e-3
@@ -101,3 +103,76 @@ def test_both_takes_the_greater_of_the_wide_and_compact_levels() -> None:
     assert np.array_equal(both.power, np.maximum(wide.power, compact.power))
     np.testing.assert_allclose(both.statistic, g.astype(np.float64) ** 2 / both.power, rtol=1e-5)
     assert both.statistic[core].mean() < 1.35 < wide.statistic[core].mean()
+
+
+def lobed_target(grid: Grid, centre: tuple[int, ...], ring_nodes: float, ring_db: float) -> np.ndarray:
+    """|γ| of a point target in water: a main lobe of one resolution cell and a ring of sidelobes
+    `ring_nodes` away, `ring_db` below the peak (the plane-wave compound's own lobes)."""
+    mesh = np.meshgrid(*[np.arange(n) for n in grid.shape], indexing="ij")
+    r = np.sqrt(sum((m - c) ** 2 for m, c in zip(mesh, centre, strict=True)))
+    main = np.exp(-(r**2) / (2 * SMOOTH**2))
+    ring = 10 ** (ring_db / 20) * np.exp(-((r - ring_nodes) ** 2) / (2 * SMOOTH**2))
+    return main + ring
+
+
+def test_local_median_is_the_level_and_ignores_a_targets_lobes() -> None:
+    """`local_median`: on exponential γ² of unit mean it is ≈ 1; a bright block covering a sixth of every
+    window around it (a target's main lobe and sidelobes) barely moves it, where the window's mean jumps."""
+    grid = Grid.regular((0, 119 * SPACING), (0, 59 * SPACING), SPACING)
+    rng = np.random.default_rng(4)
+    g2 = np.abs(speckle(grid.shape, rng)) ** 2
+    half = [30, 3]  # ± 10 × ± 1 cells, the 2-D compact window
+    vis = np.ones(grid.shape, bool)
+    cells = [RES[0], RES[1]]
+    level = local_median(g2, vis, half, cells, grid.spacing)
+    assert level.shape == g2.shape
+    assert 0.8 < float(np.median(level)) < 1.2, float(np.median(level))
+    lit = g2.copy()
+    lit[50:60, 25:35] += 400.0  # ten by ten nodes, 400× the level
+    near = local_median(lit, vis, half, cells, grid.spacing)[55, 30]
+    assert near < 1.5 * level[55, 30], (near, level[55, 30])
+    assert lit[25:86, 27:34].mean() > 20 * near  # the window's mean is raised 20×
+
+
+def test_compact_keeps_a_targets_own_lobes_out_of_its_level_in_water() -> None:
+    """A point target in water (faint noise, sidelobes at −12 dB 1.5 cells away): with the median as the
+    censoring reference its lobes are censored and T at the target is its contrast over the noise; with the
+    window's mean as the reference (the compact setting before) its lobes train its level and mask it."""
+    grid = Grid.regular((0, 59 * SPACING), (0, 59 * SPACING), SPACING)
+    rng = np.random.default_rng(6)
+    c = (30, 30)
+    noise = 0.01 * np.abs(speckle(grid.shape, rng))
+    g = lobed_target(grid, c, 4.5, -12.0) + noise
+    compact = CFAR_SETTINGS["compact"]
+    t_median = float(null_model(g, grid, RES, **compact).statistic[c])
+    t_mean = float(null_model(g, grid, RES, **{**compact, "censor_reference": "local"}).statistic[c])
+    assert t_median > 1e3, t_median  # against the noise (γ² ≈ 1e-4), not the lobes
+    assert t_mean < 0.1 * t_median, (t_mean, t_median)  # 20× lower: masked by its own lobes
+
+
+def test_decided_nodes_are_ranked_by_gamma() -> None:
+    """`NullModel.ranking` and fpcore.metrics.detect: of two targets both decided (S ≥ SURE_SIGNIFICANCE) the
+    one of larger γ is found, though the other stands higher over its local level; below that, S decides."""
+    from fpcore.metrics import detect
+
+    grid = Grid.regular((-60 * SPACING, 59 * SPACING), (10e-3, 10e-3 + 59 * SPACING), SPACING)
+    rng = np.random.default_rng(9)
+    level = np.where(np.arange(grid.shape[0])[:, None] < 60, 4.0, 1.0) * np.ones(grid.shape)
+    base = np.abs(speckle(grid.shape, rng)) * np.sqrt(level)
+    bright, dark = (30, 30), (90, 30)  # the first on the 4× level, the second on the 1× level
+    blob = lobed_target(grid, bright, 1e3, -200.0)  # a main lobe alone
+    shifted = lobed_target(grid, dark, 1e3, -200.0)
+
+    def found(a_bright: float, a_dark: float) -> tuple[int, ...]:
+        g = base + a_bright * blob + a_dark * shifted
+        nm = null_model(g, grid, RES, **CFAR_SETTINGS["compact"])
+        (d,) = detect(g, grid, 0.6e-3, 20e-3, 1.5e6, 1540.0, n_peaks=1, null=nm, max_pfa=None)
+        s_b, s_d = float(nm.significance[bright]), float(nm.significance[dark])
+        return tuple(d.index), s_b, s_d
+
+    idx, s_b, s_d = found(22.0, 14.0)  # γ² ≈ 480 over 4, 200 over 1: both decided, the dark one higher in S
+    assert min(s_b, s_d) >= SURE_SIGNIFICANCE and s_d > s_b, (s_b, s_d)
+    assert np.abs(np.array(idx) - bright).max() <= 1, idx
+    idx, s_b, s_d = found(9.0, 5.2)  # undecided: S decides
+    assert s_b < SURE_SIGNIFICANCE and s_d < SURE_SIGNIFICANCE and s_d > s_b, (s_b, s_d)
+    assert np.abs(np.array(idx) - dark).max() <= 1, idx

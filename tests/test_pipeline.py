@@ -98,15 +98,15 @@ def test_cfar_setting_reaches_the_null_models_and_the_tracker() -> None:
     from fpcore.locate import resolution_of
 
     frames, cal = born_frames(1)
-    pipe = Pipeline(PipelineConfig(**SMALL, cfar="compact"), [FingerprintSpec("marker", calibration=cal)])
+    pipe = Pipeline(PipelineConfig(**SMALL, cfar="wide"), [FingerprintSpec("marker", calibration=cal)])
     res = pipe.process(frames[0])
-    assert pipe._tracker is not None and pipe._tracker.config.cfar == "compact"
-    assert pipe._level is not None and pipe._level.cfar == "compact"
+    assert pipe._tracker is not None and pipe._tracker.config.cfar == "wide"
+    assert pipe._level is not None and pipe._level.cfar == "wide"
     fp = res.fingerprints["marker"]
     r = resolution_of(res.grid, res.acq, res.band)
     lev, vis = pipe._level.level(res.acq, res.pw, fp, r)
-    direct = cfar_null_model("compact", res.gammas["marker"], res.grid, r, level=lev, visible=vis)
-    default = cfar_null_model("wide", res.gammas["marker"], res.grid, r, level=lev, visible=vis)
+    direct = cfar_null_model("wide", res.gammas["marker"], res.grid, r, level=lev, visible=vis)
+    default = cfar_null_model("compact", res.gammas["marker"], res.grid, r, level=lev, visible=vis)
     assert np.array_equal(res.nulls["marker"].statistic, direct.statistic)
     assert not np.array_equal(direct.statistic, default.statistic)
     with pytest.raises(ValueError, match="--cfar"):

@@ -79,9 +79,10 @@ def add_null_arguments(p: argparse.ArgumentParser | argparse._ArgumentGroup) -> 
         "--cfar",
         choices=CFAR_NAMES,
         default=DEFAULT_CFAR,
-        help=f"the CFAR setting of the null model (docs/design.md §4.9; default {DEFAULT_CFAR}): 'wide' (± 6 × ± 3 "
-        "cells), 'compact' (± 1 axial cell, a guard around the node: calibrated on single-scattering speckle, "
-        "where 'wide' is not) or 'both' (the greater of the two levels)",
+        help=f"the CFAR setting of the null model (docs/design.md §4.9; default {DEFAULT_CFAR}): 'compact' (± 1 axial "
+        "cell, a guard around the node, a target's own lobes censored against the window's median: calibrated "
+        "on single-scattering speckle and in water), 'wide' (± 6 × ± 3 cells, the earlier default; not calibrated "
+        "on single-scattering speckle) or 'both' (the greater of the two levels)",
     )
 
 
