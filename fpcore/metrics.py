@@ -201,10 +201,12 @@ def detect(
     `level` (fpcore.background.NullLevel: the data's energy in the fingerprint's time support times the
     aperture factor) corrected by a censored cell-averaging CFAR, or the CFAR alone — so that a maximum
     under a bright interface and one in a dim, deep region are judged on the same scale, over the whole
-    record, with no depth window to pick. `visible` restricts the search (nodes where the fingerprint can
-    be tested). Peaks are separated by exclusion_radius (default 2 δρ_D at the peak depth); `c_gamma` is
-    taken against the map outside every accepted peak's exclusion ball. A peak is kept only when its
-    calibrated PFA is below `max_pfa` (default 1e-3; None keeps every peak, e.g. for figures).
+    record, with no depth window to pick; nodes already decided (S ≥ 30) are ranked by γ itself
+    (`NullModel.ranking`: the likelihood, not a target's own lobes' ratio to the level, picks the position).
+    `visible` restricts the search (nodes where the fingerprint can be tested). Peaks are separated by
+    exclusion_radius (default 2 δρ_D at the peak depth); `c_gamma` is taken against the map outside every
+    accepted peak's exclusion ball. A peak is kept only when its calibrated PFA is below `max_pfa` (default
+    1e-3; None keeps every peak, e.g. for figures).
     ``interior=True`` also drops maxima within δρ_D of the grid's border (`interior_peaks`, a heuristic
     kept as an option: the default does not need it).
     """
