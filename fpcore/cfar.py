@@ -79,7 +79,6 @@ reports PFA < α stays ≤ α (measured figures: README, docs/design.md §4.9).
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass, replace
 from math import gamma as gamma_fn
 from math import log, pi
@@ -87,7 +86,7 @@ from typing import Any
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
-from scipy.ndimage import map_coordinates, uniform_filter, uniform_filter1d
+from scipy.ndimage import uniform_filter, uniform_filter1d
 from scipy.special import digamma, gammaln, kve
 
 from .grid import Grid
@@ -524,19 +523,24 @@ def local_median(
     exponential law's median/mean), linearly interpolated back to the grid. Half the window may be a
     target's own main lobe and sidelobes without raising it (a censoring reference; §4.9)."""
     stride = [max(1, int(round(c / s))) for c, s in zip(cells, spacing, strict=True)]
-    coarse = np.where(visible, g2, np.nan)[tuple(slice(st // 2, None, st) for st in stride)]
+    sub = tuple(slice(st // 2, None, st) for st in stride)
+    coarse = np.where(np.asarray(visible, bool)[sub], g2[sub], np.inf)  # invisible nodes sort last
     hc = [max(1, int(round(h / st))) for h, st in zip(half, stride, strict=True)]
-    padded = np.pad(coarse, [(h, h) for h in hc], constant_values=np.nan)
-    flat = sliding_window_view(padded, [2 * h + 1 for h in hc]).reshape(*coarse.shape, -1)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # windows with no visible node: NaN, filled below
-        med = np.nanmedian(flat, axis=-1) / log(2)
-    ok = np.isfinite(med)
+    padded = np.pad(coarse, [(h, h) for h in hc], constant_values=np.inf)
+    win = np.sort(sliding_window_view(padded, [2 * h + 1 for h in hc]).reshape(*coarse.shape, -1), axis=-1)
+    n = np.sum(np.isfinite(win), axis=-1)
+    lo_i, hi_i = np.maximum((n - 1) // 2, 0), n // 2
+    med = 0.5 * (np.take_along_axis(win, lo_i[..., None], -1) + np.take_along_axis(win, hi_i[..., None], -1))[..., 0]
+    med = med / log(2)
+    ok = (n > 0) & np.isfinite(med)
     med = np.where(ok, med, float(np.median(med[ok])) if ok.any() else 1.0)
-    coords = np.meshgrid(
-        *[(np.arange(n) - st // 2) / st for n, st in zip(g2.shape, stride, strict=True)], indexing="ij"
-    )
-    return map_coordinates(med, coords, order=1, mode="nearest")
+    for axis, (n, st) in enumerate(zip(g2.shape, stride, strict=True)):  # separable linear interpolation
+        pos = np.clip((np.arange(n) - st // 2) / st, 0, med.shape[axis] - 1)
+        lo = pos.astype(int)
+        hi = np.minimum(lo + 1, med.shape[axis] - 1)
+        w = (pos - lo).reshape([-1 if ax == axis else 1 for ax in range(med.ndim)])
+        med = np.take(med, lo, axis=axis) * (1 - w) + np.take(med, hi, axis=axis) * w
+    return med
 
 
 def greater_level(wide: NullModel, compact: NullModel, gamma: np.ndarray) -> NullModel:
