@@ -11,8 +11,8 @@ Each is a function returning a `fpcore.simulate.scene.Scenario` (the rig and its
 
 * ``sinking-sphere`` — the paper's first experiment (main text Fig. 1–3, Supplementary S1–S4): a
   32×32 matrix array (pitch λ/2 at 2.2 MHz, band 1.8–2.6 MHz) over 16 mm of water on a vibrated
-  granular suspension (ℓ_s = 1.8 mm at 2.2 MHz, ℓ_a = 8 mm); a 10 mm sphere settling from 10.0 to 10.6 mm
-  below the surface (5.6–5.9 ℓ_s) and a static 8 mm sphere 10 mm below (5.6 ℓ_s), where the spheres'
+  granular suspension (ℓ_s = 1.8 mm at 2.2 MHz, ℓ_a = 8 mm); a 10 mm sphere settling from 9.9 to 10.5 mm
+  below the surface (5.5–5.8 ℓ_s) and a static 8 mm sphere 10 mm below (5.6 ℓ_s), where the spheres'
   confocal contrast is the paper's 1/150 and 1/50,
   in the paper's conventions (CONVENTIONS); 5×5 plane waves; the background decorrelates between
   frames. ``quick``: 16×16 elements over the same aperture (pitch λ), fs = 6.5 MHz.
@@ -86,12 +86,14 @@ CONVENTIONS = ("paper", "legacy")
 
 #: Target depths below the surface (m). "paper": where this model reproduces the paper's confocal contrast,
 #: C_I ≈ 1/150 for sphere 1 and 1/50 for sphere 2 (main text eq. (1): "4–5 ℓ_s", a factor 50–150), with the
-#: focused single-scattering speckle: sphere 1 settling 10.0 → 10.6 mm, sphere 2 at 10 mm (README, "The
-#: paper's regime", measured). The speckle brightens the fog's confocal image over the envelope background's,
-#: where 10.4 → 11 mm gave 1/75 → 1/156; with the speckle they give 1/114 → 1/192. The paper's stated centre
-#: depths, 9 and 7 mm, give C_I 1/13–1/24 and 1/2.8 with the envelope background: the spheres' own echoes stand
-#: out more than e^{−z/ℓ_s}; PAPER_POSITIONS keeps them. Legacy: 8 → 8.6 and 7.5 mm.
-_DEPTHS = {"paper": ((10.0e-3, 10.6e-3), 10.0e-3), "legacy": ((8e-3, 8.6e-3), 7.5e-3)}
+#: focused single-scattering speckle: sphere 1 settling 9.9 → 10.5 mm (C_I 1/68 → 1/133 measured on frames 0
+#: and 31), sphere 2 at 10 mm (1/72 → 1/68; README, "The paper's regime"). The speckle brightens the fog's
+#: confocal image over the envelope background's, where 10.4 → 11 mm gave 1/75 → 1/156; with the speckle they
+#: give 1/114 → 1/192 (and 10.0 → 10.6 mm 1/76 → 1/157: the measure moves by ~5 % with the sphere's
+#: drift). The paper's stated centre depths, 9 and 7 mm, give C_I 1/28–1/46 and 1/7 with the speckle (1/13–1/24
+#: and 1/2.8 with the envelope background): the spheres' own echoes stand out more than e^{−z/ℓ_s};
+#: PAPER_POSITIONS keeps them. Legacy: 8 → 8.6 and 7.5 mm.
+_DEPTHS = {"paper": ((9.9e-3, 10.5e-3), 10.0e-3), "legacy": ((8e-3, 8.6e-3), 7.5e-3)}
 #: The paper's stated centre depths (main text: 9 and 7 mm), sphere 1 settling to 9 mm: pass as
 #: ``sink=PAPER_POSITIONS[0], sphere2_depth=PAPER_POSITIONS[1]``.
 PAPER_POSITIONS = ((8.4e-3, 9.0e-3), 7.0e-3)
@@ -167,7 +169,7 @@ def sinking_sphere(
     sphere 1 (d = 10 mm) centre `sink` below the surface, settling (decelerating) along a straight
     trajectory that also drifts by 0.45 mm in x and 0.25 mm in y; sphere 2 (d = 8 mm) static,
     centre `sphere2_depth` below the surface; both start in the plane y = 0 at x = ∓4.75 mm. With the
-    default `conventions="paper"` (see CONVENTIONS) sphere 1 settles from 10.0 to 10.6 mm (5.6 → 5.9 ℓ_s)
+    default `conventions="paper"` (see CONVENTIONS) sphere 1 settles from 9.9 to 10.5 mm (5.5 → 5.8 ℓ_s)
     and sphere 2 sits at 10 mm (5.6 ℓ_s): the depths at which their measured confocal contrast is the
     paper's 1/150 and 1/50 (main text eq. (1); its stated 9 and 7 mm give 1/13–1/24 and 1/2.8 in this
     model, `PAPER_POSITIONS`); the background level is the transport model's, with no gain; the
@@ -240,7 +242,7 @@ def sinking_cylinder(
     ℓ_a = 8 mm, frame displacement 50 µm); cylinder 1 (d = 10 mm) settles along `sink` with a 0.45 mm
     drift in x; cylinder 2 (d = 8 mm) static at `cylinder2_depth`; both of the spheres' material
     (ρ = 5700 kg/m³, c_p = 2700 m/s, c_t = 2000 m/s). `conventions` as in `sinking_sphere`: "paper"
-    (default) puts the cylinders at the spheres' depths (10.0 → 10.6 mm and 10 mm), takes the
+    (default) puts the cylinders at the spheres' depths (9.9 → 10.5 mm and 10 mm), takes the
     transport model's background level (no gain) and calibrates once in water on the axis at 25 mm;
     "legacy": front-face attenuation, 8 → 8.6 and 7.5 mm, gain 1.0, calibrations at the initial
     (true) positions. calibration="nominal"/"axis" overrides the calibration position; `depth_ls` as in
