@@ -249,14 +249,26 @@ class NullModel:
             self._significance = sig.astype(np.float32)
         return self._significance
 
-    def ranking(self, gamma: np.ndarray) -> np.ndarray:
-        """The order in which nodes are searched: S below `SURE_SIGNIFICANCE`; above it, where a peak is
-        decided beyond any calibration (PFA < 1e-9), SURE + γ/max γ — among decided nodes the likelihood
-        (paper eq. loc), not the ratio to a local level that a target's own lobes shape, picks the position."""
+    def ranking(self, gamma: np.ndarray, sure: float = SURE_SIGNIFICANCE) -> np.ndarray:
+        """The order in which nodes are searched: S below `sure` (default `SURE_SIGNIFICANCE`); at or above
+        it, where a peak is decided (PFA ≈ 3e-6 over a 76×76×143 grid at S = 30, far below the default
+        threshold), sure + γ/max γ — among decided nodes the likelihood (paper eq. loc), not the ratio to a
+        local level that a target's own lobes shape, picks the position. Pass a higher `sure` (`threshold`)
+        when the detection threshold is stricter than that."""
         sig = self.significance.astype(np.float64)
         g = np.asarray(gamma, np.float64)
-        top = float(g.max()) if g.size else 0.0
-        return np.where(sig >= SURE_SIGNIFICANCE, SURE_SIGNIFICANCE + g / max(top, 1e-300), sig)
+        seen = np.isfinite(g) & self.visible
+        top = float(g[seen].max()) if seen.any() else 0.0
+        score = sure + np.nan_to_num(g, nan=0.0) / max(top, 1e-300)
+        return np.where(sig >= sure, score, sig)
+
+    def threshold(self, pfa: float) -> float:
+        """The significance S whose calibrated PFA over the visible nodes is `pfa` (bisection on `max_tail`)."""
+        lo, hi = 0.0, 800.0
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if self.pfa(mid) > pfa else (lo, mid)
+        return hi
 
     @property
     def tail_scale(self) -> float:
@@ -417,7 +429,7 @@ def null_model(
     sizes = [min(2 * h + 1, n) for h, n in zip(half, g2.shape, strict=True)]
 
     if censor_reference not in ("depth", "local", "median"):
-        raise ValueError(f"censor_reference: expected 'depth' or 'local', got {censor_reference!r}")
+        raise ValueError(f"censor_reference: expected 'depth', 'local' or 'median', got {censor_reference!r}")
     # The cell under test's guard box (nodes per axis), left out of its own training mean.
     gsizes = (
         [
@@ -447,7 +459,8 @@ def null_model(
     med = np.nanmedian(np.where(np.isnan(flat).all(axis=0, keepdims=True), 1.0, flat), axis=0) / np.log(2)
     med = uniform_filter1d(med, sizes[-1], mode="nearest")
     if censor_reference == "median" and np.isfinite(censor):
-        t0 = g2 / np.maximum(local_median(g2, vis, half, cells, grid.spacing), 1e-300)
+        # floored at 1e-3 of the depth's median: a window mostly at γ = 0 would censor all the rest
+        t0 = g2 / np.maximum(local_median(g2, vis, half, cells, grid.spacing), np.maximum(1e-3 * med, 1e-300))
     elif censor_reference == "local" and np.isfinite(censor):
         t0 = g2 / np.maximum(np.nan_to_num(local_mean(g2, vis.astype(np.float64)), nan=np.inf), 1e-300)
     else:
@@ -522,7 +535,7 @@ def local_median(
     visible nodes on a lattice of one node per resolution cell (nearly independent samples), over ln 2 (the
     exponential law's median/mean), linearly interpolated back to the grid. Half the window may be a
     target's own main lobe and sidelobes without raising it (a censoring reference; §4.9)."""
-    stride = [max(1, int(round(c / s))) for c, s in zip(cells, spacing, strict=True)]
+    stride = [min(max(1, int(round(c / s))), n) for c, s, n in zip(cells, spacing, g2.shape, strict=True)]
     sub = tuple(slice(st // 2, None, st) for st in stride)
     coarse = np.where(np.asarray(visible, bool)[sub], g2[sub], np.inf)  # invisible nodes sort last
     hc = [max(1, int(round(h / st))) for h, st in zip(half, stride, strict=True)]

@@ -28,7 +28,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .cfar import NullModel, null_model
+from .cfar import DEFAULT_CFAR, SURE_SIGNIFICANCE, NullModel, cfar_null_model
 from .grid import Grid
 
 __all__ = [
@@ -213,9 +213,14 @@ def detect(
     g = np.asarray(gamma, dtype=np.float32)
     mid = 0.5 * (grid.z[0] + grid.z[-1])
     res_mid, axial_res = resolution_cell(wavelength, aperture, bandwidth, c0, mid)
-    nm = null if null is not None else null_model(g, grid, (res_mid, axial_res), level=level, visible=visible)
+    nm = (
+        null
+        if null is not None
+        else cfar_null_model(DEFAULT_CFAR, g, grid, (res_mid, axial_res), level=level, visible=visible)
+    )
     sig = nm.significance
-    work = np.where(nm.visible, nm.ranking(g), -np.inf).astype(np.float64)
+    sure = SURE_SIGNIFICANCE if max_pfa is None else max(SURE_SIGNIFICANCE, nm.threshold(max_pfa))
+    work = np.where(nm.visible, nm.ranking(g, sure), -np.inf).astype(np.float64)
     mesh = _mesh(grid)
     if interior:
         work[~interior_peaks(g, grid, res_mid, mesh)] = -np.inf
