@@ -67,8 +67,9 @@ for the maximum, Worsley et al. 1996):
    ≈ N e^{−t} times a factor t^{D/2} that the "L independent cells" model misses — which is why that
    model, even with the right exponent, under-reports false alarms in the tail.
 5. **Search order** (`NullModel.ranking`; fpcore.metrics.detect, the tracker's gates): the maxima of S,
-   except among decided nodes (S ≥ `SURE_SIGNIFICANCE`), which are ranked by γ itself. There the PFA is
-   beyond anything the null model is calibrated for, and the ratio to a local level is shaped by the
+   except among decided nodes (S ≥ `SURE_SIGNIFICANCE`, PFA ≈ 3e-6 over a 76×76×143 grid; `detect` uses its
+   own threshold's S when `max_pfa` is stricter), which are ranked by γ itself. There the PFA is far
+   below the detection threshold, and the ratio to a local level is shaped by the
    target's own lobes (in water they are the whole background: the compact window put the Born marker's
    most significant node on a lobe 0.95 mm off); γ, the likelihood (paper eq. loc), picks the position.
 
