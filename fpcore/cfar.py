@@ -265,11 +265,19 @@ class NullModel:
 
     def threshold(self, pfa: float) -> float:
         """The significance S whose calibrated PFA over the visible nodes is `pfa` (bisection on `max_tail`)."""
+        resels = self.resels()
         lo, hi = 0.0, 800.0
         for _ in range(60):
             mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if self.pfa(mid) > pfa else (lo, mid)
+            lo, hi = (mid, hi) if max_tail(mid, resels) > pfa else (lo, mid)
         return hi
+
+    def decided(self, max_pfa: float | None) -> float:
+        """The S above which `ranking` orders by γ for a search kept below `max_pfa`: `SURE_SIGNIFICANCE`, or
+        the threshold's own S where `max_pfa` is stricter than the PFA at S = 30 (None: no threshold)."""
+        if max_pfa is None or self.pfa(SURE_SIGNIFICANCE) < max_pfa:
+            return SURE_SIGNIFICANCE
+        return max(SURE_SIGNIFICANCE, self.threshold(max_pfa))
 
     @property
     def tail_scale(self) -> float:
@@ -542,11 +550,11 @@ def local_median(
     hc = [max(1, int(round(h / st))) for h, st in zip(half, stride, strict=True)]
     padded = np.pad(coarse, [(h, h) for h in hc], constant_values=np.inf)
     win = np.sort(sliding_window_view(padded, [2 * h + 1 for h in hc]).reshape(*coarse.shape, -1), axis=-1)
-    n = np.sum(np.isfinite(win), axis=-1)
-    lo_i, hi_i = np.maximum((n - 1) // 2, 0), n // 2
+    count = np.sum(np.isfinite(win), axis=-1)  # visible nodes per window, sorted first
+    lo_i, hi_i = np.maximum((count - 1) // 2, 0), count // 2
     med = 0.5 * (np.take_along_axis(win, lo_i[..., None], -1) + np.take_along_axis(win, hi_i[..., None], -1))[..., 0]
     med = med / log(2)
-    ok = (n > 0) & np.isfinite(med)
+    ok = (count > 0) & np.isfinite(med)
     med = np.where(ok, med, float(np.median(med[ok])) if ok.any() else 1.0)
     for axis, (n, st) in enumerate(zip(g2.shape, stride, strict=True)):  # separable linear interpolation
         pos = np.clip((np.arange(n) - st // 2) / st, 0, med.shape[axis] - 1)

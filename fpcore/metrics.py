@@ -28,7 +28,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .cfar import DEFAULT_CFAR, SURE_SIGNIFICANCE, NullModel, cfar_null_model
+from .cfar import DEFAULT_CFAR, NullModel, cfar_null_model
 from .grid import Grid
 
 __all__ = [
@@ -219,8 +219,7 @@ def detect(
         else cfar_null_model(DEFAULT_CFAR, g, grid, (res_mid, axial_res), level=level, visible=visible)
     )
     sig = nm.significance
-    sure = SURE_SIGNIFICANCE if max_pfa is None else max(SURE_SIGNIFICANCE, nm.threshold(max_pfa))
-    work = np.where(nm.visible, nm.ranking(g, sure), -np.inf).astype(np.float64)
+    work = np.where(nm.visible, nm.ranking(g, nm.decided(max_pfa)), -np.inf).astype(np.float64)
     mesh = _mesh(grid)
     if interior:
         work[~interior_peaks(g, grid, res_mid, mesh)] = -np.inf

@@ -187,3 +187,16 @@ def test_compact_on_a_grid_thinner_than_a_resolution_cell() -> None:
     g = np.abs(speckle(grid.shape, np.random.default_rng(2)))
     nm = cfar_null_model("compact", g, grid, (3 * SPACING, 1e-3))
     assert np.all(np.isfinite(nm.significance)) and float(nm.significance.max()) < nm.threshold(1e-3)
+
+
+def test_threshold_inverts_the_pfa_and_sets_where_gamma_ranks() -> None:
+    """`NullModel.threshold` is the inverse of `NullModel.pfa` (PFA of the threshold = the PFA asked for);
+    `decided` keeps S = 30 for the default 1e-3 and moves to the threshold's S for a stricter one."""
+    grid = Grid.regular((0, 59 * SPACING), (0, 59 * SPACING), SPACING)
+    g = np.abs(speckle(grid.shape, np.random.default_rng(12)))
+    nm = null_model(g, grid, RES, **CFAR_SETTINGS["compact"])
+    for p in (1e-2, 1e-3, 1e-8, 1e-12):
+        s = nm.threshold(p)
+        assert abs(np.log(nm.pfa(s)) - np.log(p)) < 1e-6, (p, s, nm.pfa(s))
+    assert nm.decided(1e-3) == SURE_SIGNIFICANCE and nm.decided(None) == SURE_SIGNIFICANCE
+    assert nm.decided(1e-15) == nm.threshold(1e-15) > SURE_SIGNIFICANCE
