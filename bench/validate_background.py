@@ -9,7 +9,7 @@
 
 The Foldy–Lax reference (bench/foldy_lax_reference.py, cached in out/bench/) and the model are built
 for the same geometry: array, finite-aperture plane-wave transmits, band, time window, a scattering
-medium from z_surface down (FL: a slab; model: a half-space, or with --slab the same slab) with
+medium from z_surface down (FL: a slab; model: a half-space, or with --slab the same slab, bottom and sides) with
 ℓ_s(f_c) = 1.8 mm, lossless, index-matched (no interface echo), frozen (frame_displacement 0). The
 four agreement figures of the issue, measured with bench/background_metrics.py on both, side by side:
 
@@ -132,9 +132,11 @@ def compare(
     freqs = data["freqs"]
     if not np.allclose(freqs, s.freqs()):
         raise SystemExit(f"{path}: frequencies differ from the setup's window (stale cache? delete it)")
-    if slab:  # the FL medium is a slab: the model's diffusion envelope gets the same bottom
-        layer_kw = {**layer_kw, "thickness": s.thickness}
-        print(f"  {dim}D model layer with the FL slab's thickness {s.thickness * 1e3:.1f} mm")
+    if slab:  # the FL medium is a slab: the model's diffusion envelope gets the same bottom and sides
+        layer_kw = {**layer_kw, "thickness": s.thickness, "width": s.width}
+        print(
+            f"  {dim}D model with the FL slab's {s.thickness * 1e3:.1f} mm thickness, {s.width * 1e3:.0f} mm width"
+        )
     if match_dispersion:  # ℓ_s(f) = ℓ_s(f_c) (f/f_c)^(−ls_exponent), fitted on the FL medium's ℓ_s(f)
         expo = -float(np.polyfit(np.log(freqs / s.f_c), np.log(data["ls"]), 1)[0])
         layer_kw = {**layer_kw, "ls_exponent": round(expo, 3), "f_ref": s.f_c}
@@ -306,7 +308,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--slab",
         action="store_true",
-        help="give the model the FL slab's thickness (the diffusion envelope with the bottom's images)",
+        help="give the model the FL slab's thickness and width (the diffusion envelope with the images of its "
+        "bottom and sides)",
     )
     ap.add_argument("--png", default="out/bench/validate_background.png")
     args = ap.parse_args(argv)

@@ -34,6 +34,7 @@ from scipy.ndimage import uniform_filter
 
 from .acquisition import Acquisition, PlaneWaveData, Spectrum, to_plane_waves
 from .cfar import DEFAULT_CFAR, check_cfar
+from .envelope_loops import envelope_columns
 from .fingerprint import Fingerprint
 from .geometry import from_xyz
 from .grid import Grid
@@ -72,6 +73,7 @@ class NullPower:
         # Ê_F e^{−iK·r0} per fingerprint, with its output directions
         self._fingerprints: OrderedDict[tuple, tuple[np.ndarray, np.ndarray]] = OrderedDict()
         self._data: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # Ê_R of the last frame, directions made
+        self._w: tuple[np.ndarray, np.ndarray] | None = None  # the kernel's weights and their support
         self._cache = cache
 
     @staticmethod
@@ -110,8 +112,9 @@ class NullPower:
         return kern, nu
 
     def _fingerprint_side(self, pw: PlaneWaveData, fp: Fingerprint, nu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """conj(Ê_F) e^{−iK·r0} with the one-sided weights (w_0 = 1, w_ν>0 = 2), and the output directions
-        where it is not zero (a fingerprint's angular support), cached per fingerprint."""
+        """conj(Ê_F) e^{−iK·r0} with the one-sided weights (w_0 = 1, w_ν>0 = 2) on the output directions where
+        it is not zero (a fingerprint's angular support), (N_ν, N_support, N_i), and those directions; cached
+        per fingerprint."""
         key = (getattr(fp, "token", id(fp)), nu.tobytes(), pw.out_sines.tobytes(), pw.in_sines.tobytes())
         hit = self._fingerprints.get(key)
         if hit is None:
@@ -120,32 +123,48 @@ class NullPower:
             support = np.flatnonzero(np.any(t != 0, axis=(0, 2)))
             K = wavevectors(nu, pw.out_sines, pw.in_sines, pw.c0, self.grid.ndim)
             t = (t.ravel() * np.exp(-1j * (K @ from_xyz(fp.r0, self.grid.ndim)))).astype(np.complex64)
+            t = np.ascontiguousarray(t.reshape(np.shape(fp.data))[:, support])
             hit = self._fingerprints[key] = (t, support)
             while len(self._fingerprints) > 8 * self._cache:
                 self._fingerprints.popitem(last=False)
         return hit
 
     def _data_side(self, pw: PlaneWaveData, outputs: np.ndarray) -> np.ndarray:
-        """Ê_R of this frame's data (flat), made once per frame and output direction whatever the number of
-        fingerprints, and only on the directions `outputs` asked for so far (zero elsewhere): the product
-        with a fingerprint's side needs no more (≈ 20 % of the full-size frame's directions: 5× fewer FFTs)."""
-        if self._data is None or self._data[0] is not pw.data:  # the frame's own array: its id is not reused
-            self._data = (pw.data, np.zeros(pw.data.shape, np.complex64), np.zeros(pw.data.shape[1], bool))
+        """Ê_R of this frame's data, (N_ν, N_o, N_i), made once per frame and output direction whatever the
+        number of fingerprints, and only on the directions `outputs` asked for so far: the product with a
+        fingerprint's side needs no more (≈ 20 % of the full-size frame's directions). The buffer is kept
+        between frames of one shape; a direction not yet made for this frame holds an earlier frame's values
+        and is never read (fpcore.envelope_loops, by frequency autocorrelation)."""
+        data = np.ascontiguousarray(pw.data, dtype=np.complex64)
+        if self._data is None or self._data[1].shape != data.shape:
+            self._data = (pw.data, np.zeros(data.shape, np.complex64), np.zeros(data.shape[1], bool))
+        elif self._data[0] is not pw.data:  # a new frame (its own array: its id is not reused while held)
+            self._data = (pw.data, self._data[1], np.zeros(data.shape[1], bool))
         _, e, done = self._data
         need = outputs[~done[outputs]]
-        if need.size == done.size:
-            e[...] = envelope_spectrum(np.asarray(pw.data))
-        elif need.size:
-            e[:, need] = envelope_spectrum(np.asarray(pw.data)[:, need])
+        envelope_columns(data, need, e)
         done[need] = True
-        return e.ravel()
+        return e
+
+    def _weights(self, shape: tuple[int, ...], support: np.ndarray) -> np.ndarray:
+        """The kernel's weight buffer, zero outside `support` (kept between calls: only the directions of the
+        last support that the new one lacks are cleared)."""
+        if self._w is None or self._w[0].shape != shape:
+            self._w = (np.zeros(shape, np.complex64), support)
+        w, last = self._w
+        if last is not support and not np.array_equal(last, support):
+            w[:, np.setdiff1d(last, support)] = 0
+        self._w = (w, support)
+        return w
 
     def power(self, pw: PlaneWaveData, fp: Fingerprint) -> np.ndarray:
         """P(r) ≥ 0 on the grid (eq. B1), float64."""
         kern, nu = self._kernel(pw)
         t, support = self._fingerprint_side(pw, fp, nu)
-        w = self._data_side(pw, support) * t
-        p = kern(w).real.astype(np.float64)
+        e = self._data_side(pw, support)
+        w = self._weights(e.shape, support)
+        w[:, support] = e[:, support] * t
+        p = kern(w.ravel()).real.astype(np.float64)
         return np.maximum(p, 0.0)
 
     def gamma_level(self, pw: PlaneWaveData, fp: Fingerprint) -> np.ndarray:

@@ -452,20 +452,22 @@ def null_model(
     def box_sum(values: np.ndarray, box: list[int]) -> np.ndarray:
         return uniform_filter(values, box, mode="constant") * float(np.prod(box))
 
-    def local_mean(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    def local_sums(values: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(mean of `values` over the window's `weights`, NaN where none; the weights' sum in the window)."""
         s = box_sum(values * weights, sizes)
         n = box_sum(weights, sizes)
         if gsizes is not None:  # CA-CFAR: the window less the guard box around the cell under test
             s_g, n_g = box_sum(values * weights, gsizes), box_sum(weights, gsizes)
             ring = n - n_g > 0.25 * n  # else (a window mostly guard, at the grid's edges) the whole window
             s, n = np.where(ring, s - s_g, s), np.where(ring, n - n_g, n)
-        return np.where(n > 1e-6, s / np.maximum(n, 1e-30), np.nan)
+        return np.where(n > 1e-6, s / np.maximum(n, 1e-30), np.nan), n
+
+    def local_mean(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        return local_sums(values, weights)[0]
 
     # Robust first pass: the local median of γ² over visible nodes (exponential: median = ln 2 × mean),
     # through per-depth medians smoothed over the depth window.
-    nz = g2.shape[-1]
-    flat = np.where(vis, g2, np.nan).reshape(-1, nz)
-    med = np.nanmedian(np.where(np.isnan(flat).all(axis=0, keepdims=True), 1.0, flat), axis=0) / np.log(2)
+    med = depth_median(g2, vis) / np.log(2)
     med = uniform_filter1d(med, sizes[-1], mode="nearest")
     if censor_reference == "median" and np.isfinite(censor):
         # floored at 1e-3 of the depth's median: a window mostly at γ = 0 would censor all the rest
@@ -484,7 +486,7 @@ def null_model(
         return uniform_filter(hot, [2 * r + 1 for r in radius], mode="constant") > 1e-6
 
     train = (vis & ~guard(1.0)).astype(np.float64)
-    power = local_mean(g2, train)
+    power, count = local_sums(g2, train)  # count: the training nodes in the window (less the guard box)
     if greatest_of:
         # GO-CFAR (Hansen & Sawyers 1980) across each lateral axis: the larger of the window's two
         # lateral halves, where a half holds at least a quarter of its nodes in training. At a level
@@ -514,10 +516,6 @@ def null_model(
     # Independent training cells per node: the training nodes in its window over the nodes per resel.
     # As in radar CA-CFAR, the cell under test's own guard region is not training by design: nodes
     # censored within ± `own_guard` cells of a node (its own peak and sidelobes) do not count as missing.
-    count = box_sum(train, sizes)
-    if gsizes is not None:  # the window less the guard box, as in local_mean
-        ring = count - box_sum(train, gsizes)
-        count = np.where(ring > 0.25 * count, ring, count)
     if own_guard > 0:
         near = [max(1, int(np.ceil(own_guard * c / s))) * 2 + 1 for c, s in zip(cells, grid.spacing, strict=True)]
         censored = (vis & (train == 0)).astype(np.float64)
@@ -535,6 +533,19 @@ def null_model(
         tail_fit,
         tuple(max(1, int(np.ceil(2.0 * c / s))) for c, s in zip(cells, grid.spacing, strict=True)),
     )
+
+
+def depth_median(g2: np.ndarray, visible: np.ndarray) -> np.ndarray:
+    """Per depth (last axis), the median of g2 over the visible nodes (1 where none is visible; NaN ignored):
+    numpy's nanmedian of the masked map, by one sort (invisible nodes sort last)."""
+    nz = g2.shape[-1]
+    valid = np.asarray(visible, bool) & np.isfinite(g2)
+    flat = np.sort(np.where(valid, g2, np.inf).reshape(-1, nz), axis=0)
+    count = valid.reshape(-1, nz).sum(axis=0)
+    lo, hi = np.maximum((count - 1) // 2, 0), np.maximum(count // 2, 0)
+    cols = np.arange(nz)
+    med = 0.5 * (flat[lo, cols] + flat[np.minimum(hi, flat.shape[0] - 1), cols])
+    return np.where(count > 0, med, 1.0)
 
 
 def local_median(

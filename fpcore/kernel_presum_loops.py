@@ -71,20 +71,21 @@ def _fallback_cache_dir() -> str | None:
     return path
 
 
-def _jit(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """numba.njit(fastmath, nogil, cached on disk; see the module doc for where)."""
+def _jit(fn: Callable[..., Any], fastmath: bool = True) -> Callable[..., Any]:
+    """numba.njit(fastmath, nogil, cached on disk; see the module doc for where). ``fastmath=False`` keeps
+    IEEE order and no fused multiply-adds: a lane of a vectorized loop then rounds as the scalar tail does."""
     assert nb is not None
     try:
-        return nb.njit(fastmath=True, cache=True, nogil=True)(fn)
+        return nb.njit(fastmath=fastmath, cache=True, nogil=True)(fn)
     except RuntimeError:  # "cannot cache function …: no locator available": nothing numba tried is writable
         fallback = None if nb.config.CACHE_DIR else _fallback_cache_dir()
         if fallback is not None:
             nb.config.CACHE_DIR = fallback
             try:
-                return nb.njit(fastmath=True, cache=True, nogil=True)(fn)
+                return nb.njit(fastmath=fastmath, cache=True, nogil=True)(fn)
             except RuntimeError:
                 pass
-        return nb.njit(fastmath=True, nogil=True)(fn)  # compiled at its first call, every process
+        return nb.njit(fastmath=fastmath, nogil=True)(fn)  # compiled at its first call, every process
 
 
 def _inline(fn: Callable[..., Any]) -> Callable[..., Any]:

@@ -20,7 +20,7 @@ from .grid import Grid
 from .likelihood import Imager
 from .metrics import DEFAULT_MAX_PFA, Detection, detect, resolution_cell
 
-__all__ = ["Located", "locate", "null_of", "resolution_of"]
+__all__ = ["Located", "locate", "null_of", "physical_level_of", "resolution_of"]
 
 
 @dataclass
@@ -38,6 +38,20 @@ def resolution_of(grid: Grid, acq: Acquisition, band: tuple[float, float]) -> tu
     return resolution_cell(lam, acq.probe.aperture[0], band[1] - band[0], acq.c0, 0.5 * (grid.z[0] + grid.z[-1]))
 
 
+def physical_level_of(
+    grid: Grid,
+    acq: Acquisition,
+    pw: PlaneWaveData,
+    fp: Fingerprint,
+    band: tuple[float, float],
+    level: NullLevel,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(level, visible) of `level` for one fingerprint on this frame (eq. B1 × the aperture factor; no
+    single-scattering mixture, which needs the map): what `null_of` passes to the CFAR, made before the map
+    when the caller has something to overlap it with."""
+    return level.level(acq, pw, fp, resolution_of(grid, acq, band))
+
+
 def null_of(
     gamma: np.ndarray,
     grid: Grid,
@@ -47,11 +61,19 @@ def null_of(
     band: tuple[float, float],
     level: NullLevel | None,
     image: np.ndarray | None = None,
+    physical: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> NullModel:
     """The local null model of one γ-map, with `level`'s physical null level (None: the CFAR alone);
-    `image`: the frame's confocal image when the caller has made it (the single-scattering level uses it)."""
+    `image`: the frame's confocal image when the caller has made it (the single-scattering level uses it);
+    `physical`: `physical_level_of`'s (level, visible) for this frame and fingerprint, already made (not with
+    a single-scattering level)."""
     res = resolution_of(grid, acq, band)
-    lev, vis = level.level(acq, pw, fp, res, gamma=gamma, image=image) if level is not None else (None, None)
+    if level is None:
+        lev, vis = None, None
+    elif physical is not None and not level.single_scattering:
+        lev, vis = physical
+    else:
+        lev, vis = level.level(acq, pw, fp, res, gamma=gamma, image=image)
     return cfar_null_model(level.cfar if level is not None else DEFAULT_CFAR, gamma, grid, res, level=lev, visible=vis)
 
 

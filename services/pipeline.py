@@ -29,7 +29,7 @@ from fpcore import Acquisition, Fingerprint, Grid, Imager, NullLevel
 from fpcore.acquisition import PlaneWaveData
 from fpcore.background import NullPower
 from fpcore.cfar import DEFAULT_CFAR, NullModel, check_cfar
-from fpcore.locate import null_of, resolution_of
+from fpcore.locate import null_of, physical_level_of, resolution_of
 from fpcore.metrics import DEFAULT_MAX_PFA, Detection
 from fpcore.tracking import Tracker, TrackState
 from fpcore.velocity import VelocityEstimate, VelocitySearch
@@ -115,8 +115,9 @@ class PipelineConfig:
 class FrameResult:
     """What one frame gave: γ-maps (fingerprint name → map on ``grid``), the confocal image (None when
     not asked for), detections with their distance to the frame's truth, tracks, and the time of the
-    three compute stages (s; with the image, 'gamma_kernel' includes the part of the null models made
-    alongside it, Pipeline._null_models, and 'detection' the rest)."""
+    three compute stages (s; 'gamma_kernel': the γ-maps and the image, with the part of the null models and
+    detections made alongside them, Pipeline._second_stage; 'detection': the rest of those, the velocities
+    and the tracker)."""
 
     acq: Acquisition
     pw: PlaneWaveData
@@ -356,23 +357,22 @@ class Pipeline:
             t0 = time.perf_counter()
             pw = imager.plane_waves(acq)
             t1 = time.perf_counter()
-            gammas = {n: imager.gamma(pw, fp) for n, fp in fps.items()}
             want_image = cfg.publish_image if with_image is None else with_image
             grid = imager.grid
-            if cfg.single_scattering_null:  # eq. (B2) needs the image first: no overlap
-                image = imager.confocal(pw)
-                nulls_of = self._null_models(acq, pw, fps, gammas, band, overlap=False, image=image)
-                image = image if want_image else None
-            else:
-                nulls_of = self._null_models(acq, pw, fps, gammas, band, overlap=want_image)
-                image = imager.confocal(pw) if want_image else None
-            t2 = time.perf_counter()
             truths = truth_positions(acq.ground_truth)
-            nulls = nulls_of()
-            dets: list[tuple[Detection, float | None]] = []
-            for name, g in gammas.items():
-                for d in find_targets(g, grid, acq, band, name, cfg.n_peaks, cfg.interior, nulls[name], cfg.max_pfa):
-                    dets.append((d, truth_error(np.asarray(d.position_m, float), truths, name)))
+            if cfg.single_scattering_null:  # eq. (B2) needs the image first: no overlap
+                gammas = {n: imager.gamma(pw, fp) for n, fp in fps.items()}
+                image = imager.confocal(pw)
+                nulls, dets = self._second_stage(acq, pw, fps, band, truths, overlap=False, image=image)(gammas)()
+                image = image if want_image else None
+                t2 = time.perf_counter()
+            else:
+                stage = self._second_stage(acq, pw, fps, band, truths, overlap=True)
+                gammas = {n: imager.gamma(pw, fp) for n, fp in fps.items()}
+                result = stage(gammas)
+                image = imager.confocal(pw) if want_image else None
+                t2 = time.perf_counter()
+                nulls, dets = result()
             tv = time.perf_counter()
             velocities, motion, notices = self._velocities(acq, pw, grid, dets)
             if self._level is not None and gammas and not NullPower.uniform(pw.freqs) and "bins" not in self._noticed:
@@ -408,36 +408,58 @@ class Pipeline:
             tv,
         )
 
-    def _null_models(
+    def _second_stage(
         self,
         acq: Acquisition,
         pw: PlaneWaveData,
         fps: Mapping[str, Fingerprint],
-        gammas: Mapping[str, np.ndarray],
         band: tuple[float, float],
+        truths: Any,
         overlap: bool,
         image: np.ndarray | None = None,
-    ) -> Callable[[], dict[str, NullModel]]:
-        """The null model of each γ-map (fpcore.locate.null_of: the physical level, docs/design.md §4.9 eq. B1,
-        then the CFAR), as a call that returns them. With ``overlap`` they are computed on a second thread
-        while the caller makes the confocal image: both use the 2 cores, and the serial parts of each (the
-        CFAR's filters, the level's FFT set-up and products) fill the other's idle time. The fingerprints'
-        aperture factors (cached; made by the imager's kernel, which is not re-entrant) are made here first.
-        ``image``: the frame's confocal image, for the single-scattering level (``single_scattering_null``)."""
-        level, grid = self._level, self.grid
+    ) -> Callable[[Mapping[str, np.ndarray]], Callable[[], tuple[dict[str, NullModel], list]]]:
+        """The frame's null models and detections, as stage(gammas) → a call that returns (nulls, detections).
+
+        Each γ-map's null model is fpcore.locate.null_of: the physical level (docs/design.md §4.9, eq. B1 ×
+        the aperture factor), which does not need the map, then the CFAR on the map. With ``overlap`` a second
+        thread makes the physical levels at once, while the caller makes the γ-maps, then the CFARs and the
+        detections (find_targets) while the caller makes the confocal image: both use the 2 cores, and the
+        serial parts of one (the CFAR's filters, the peak search, the level's products) fill the other's idle
+        time. The fingerprints' aperture factors (cached; made by the imager's kernel, which is not
+        re-entrant) are made here first. ``image``: the frame's confocal image, for the single-scattering
+        level (``single_scattering_null``; no overlap)."""
+        level, grid, cfg = self._level, self.grid, self.cfg
         if level is not None:
             res = resolution_of(grid, acq, band)
             for fp in fps.values():
                 level.aperture(acq, pw, fp, res)
 
-        def run() -> dict[str, NullModel]:
-            return {n: null_of(g, grid, acq, pw, fps[n], band, level, image) for n, g in gammas.items()}
+        def physical() -> dict[str, tuple[np.ndarray, np.ndarray]]:
+            if level is None or level.single_scattering:
+                return {}
+            return {n: physical_level_of(grid, acq, pw, fp, band, level) for n, fp in fps.items()}
 
-        if not overlap or not gammas:
-            return run
+        def finish(
+            gammas: Mapping[str, np.ndarray], levels: Mapping[str, tuple[np.ndarray, np.ndarray]]
+        ) -> tuple[dict[str, NullModel], list]:
+            nulls = {n: null_of(g, grid, acq, pw, fps[n], band, level, image, levels.get(n)) for n, g in gammas.items()}
+            dets: list[tuple[Detection, float | None]] = []
+            for name, g in gammas.items():
+                for d in find_targets(g, grid, acq, band, name, cfg.n_peaks, cfg.interior, nulls[name], cfg.max_pfa):
+                    dets.append((d, truth_error(np.asarray(d.position_m, float), truths, name)))
+            return nulls, dets
+
+        if not overlap or not fps:
+            return lambda gammas: lambda: finish(gammas, physical())
         if self._second is None:
             self._second = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fp-null")
-        return self._second.submit(run).result
+        levels = self._second.submit(physical)
+
+        def stage(gammas: Mapping[str, np.ndarray]) -> Callable[[], tuple[dict[str, NullModel], list]]:
+            assert self._second is not None
+            return self._second.submit(lambda: finish(gammas, levels.result())).result
+
+        return stage
 
     def _notice(self, key: str, text: str, out: list[str]) -> None:
         if key not in self._noticed:

@@ -1,7 +1,8 @@
 """The full-size frame's fast paths (issue 15, item 6) against their references: the exact lateral path of
 PresumTransform (centre-symmetric DFTs, rows without samples skipped, one frequency per thread block) against
 the direct sum with a fingerprint-like weight (most output directions at zero weight) and against the NUFFT
-lateral path; the compiled separable projection P_θu against the general phase-matrix product."""
+lateral path; the compiled separable projection P_θu against the general phase-matrix product; the envelope spectra by
+autocorrelation against their FFT."""
 
 from __future__ import annotations
 
@@ -79,7 +80,8 @@ def test_null_power_on_the_fingerprints_directions_equals_the_full_data_side() -
     """NullPower makes the data's envelope spectrum only on the output directions where a fingerprint's side
     is not zero (its angular support), once per frame: P(r) of eq. B1 equals the product with Ê_R made on
     every direction, for two fingerprints with different supports, in either order."""
-    from fpcore.background import NullPower, envelope_spectrum
+    from fpcore.background import NullPower
+    from fpcore.envelope_loops import envelope_columns
     from fpcore.fingerprint import point_fingerprint
 
     freqs = np.linspace(1.8e6, 2.6e6, 17)
@@ -95,6 +97,8 @@ def test_null_power_on_the_fingerprints_directions_equals_the_full_data_side() -
         fp.data[:, :lo] = 0
         fp.data[:, hi:] = 0
         fps.append(fp)
+    full = np.zeros_like(data)  # Ê_R on every direction, by the same autocorrelation (fpcore.envelope_loops)
+    envelope_columns(data, np.arange(out.shape[0]), full)
     npow = NullPower(grid)
     for order in (fps, fps[::-1]):
         npow._data = None  # a new frame
@@ -102,6 +106,28 @@ def test_null_power_on_the_fingerprints_directions_equals_the_full_data_side() -
             kern, nu = npow._kernel(pw)
             t, support = npow._fingerprint_side(pw, fp, nu)
             assert support.size < out.shape[0]
-            ref = np.maximum(kern(envelope_spectrum(data).ravel() * t).real.astype(np.float64), 0.0)
+            tf = np.zeros(data.shape, np.complex64)  # the side on every direction (zero off its support)
+            tf[:, support] = t
+            ref = np.maximum(kern((full * tf).ravel()).real.astype(np.float64), 0.0)
             got = npow.power(pw, fp)
             assert np.abs(got - ref).max() <= 1e-6 * np.abs(ref).max()
+
+
+@pytest.mark.parametrize("n_freq", [1, 2, 17, 89])
+def test_envelope_autocorrelation_equals_the_envelopes_spectrum(n_freq: int) -> None:
+    """Ê(m) = Σ_f R_{f+m} R_f* (fpcore.envelope_loops, Wiener–Khinchin) is the rFFT of |a(t)|², a the band's
+    analytic signal on 2N_f samples (`envelope_spectrum`), on the directions asked for; the others are left as
+    they were."""
+    from fpcore.background import envelope_spectrum
+    from fpcore.envelope_loops import envelope_columns
+
+    rng = np.random.default_rng(n_freq)
+    data = (rng.standard_normal((n_freq, 30, 7)) + 1j * rng.standard_normal((n_freq, 30, 7))).astype(np.complex64)
+    cols = np.array([0, 3, 4, 5, 11, 12, 13, 14, 15, 16, 17, 18, 29])
+    out = np.full(data.shape, 7 + 7j, np.complex64)
+    envelope_columns(data, cols, out)
+    ref = envelope_spectrum(data)
+    assert np.abs(out[:, cols] - ref[:, cols]).max() <= 2e-6 * np.abs(ref).max()
+    rest = np.setdiff1d(np.arange(30), cols)
+    assert np.all(out[:, rest] == 7 + 7j)
+    assert np.allclose(out[0, cols].imag, 0, atol=1e-6 * np.abs(ref).max())  # Ê(0) = Σ|R_f|² is real

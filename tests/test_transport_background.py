@@ -195,3 +195,28 @@ def test_default_sinking_sphere_is_in_the_papers_regime() -> None:
         np.testing.assert_allclose(sc.placements[name].calibration_position, [0.0, 0.0, 25e-3])
     legacy = scenario("sinking-sphere", quick=True, n_frames=2, conventions="legacy")
     assert legacy.layer is not None and legacy.layer.gain == 2.5 and legacy.layer.attenuation_depth == "front"
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_side_losses_match_the_walled_diffusions_eigenmodes(dim: int) -> None:
+    """A medium of finite width keeps, per lateral axis, the share of a centred Gaussian halo (variance σ² =
+    b²/2) that diffusion between absorbing walls at ±X (X = width/2 + z_e) leaves within |x| < a: the image
+    series of `side_losses` equals the walls' eigenmode series, (1/X) Σ_{k odd} cos(kπx/2X) e^{−(kπ/2X)² σ²/2}
+    integrated over |x| < a, over the free share erf(a/b); an unbounded medium loses nothing."""
+    from scipy.special import erf
+
+    ls, width, a = 1.8e-3, 12e-3, 2e-3
+    lay = ScatteringLayer(z_surface=5e-3, ls=ls, envelope="diffusion", width=width)
+    x_wall = 0.5 * width + lay.diffusion_constants(dim)[1]
+    b2 = np.geomspace(1e-8, 4e-4, 40)
+    k = np.arange(1, 4001, 2)[:, None]
+    q = k * np.pi / (2 * x_wall)
+    kept = np.sum((1 / x_wall) * (2 / q) * np.sin(q * a) * np.exp(-(q**2) * b2[None, :] / 4), axis=0)
+    ratio = np.clip(kept / erf(a / np.sqrt(b2)), 0, 1) ** (dim - 1)
+    got = lay.side_losses(b2, a, dim)
+    np.testing.assert_allclose(got, ratio, atol=2e-4)
+    assert got[0] == pytest.approx(1.0) and np.all(np.diff(got) <= 1e-12) and got[-1] < 0.5
+    free = ScatteringLayer(z_surface=5e-3, ls=ls, envelope="diffusion")
+    assert np.all(free.side_losses(b2, a, dim) == 1.0)
+    with pytest.raises(ValueError, match="width"):
+        ScatteringLayer(z_surface=5e-3, ls=ls, width=0.0)

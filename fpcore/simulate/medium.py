@@ -74,7 +74,8 @@ class ScatteringLayer:
     ℓ_s(f) (`ls_at`); single_scattering "envelope" (all orders in the Gaussian field) or "field" (the first
     order as a focused speckle, `single_scattering`); cbs: reciprocity and coherent backscattering;
     thickness: the medium's thickness below the surface (m; inf: a half-space), which bounds the diffusion
-    envelope (`reflectance_density`).
+    envelope (`reflectance_density`); width: its lateral extent (m; |x|, |y| ≤ width/2 about the array's
+    axis; inf: unbounded), whose sides let the diffuse halo out (`side_losses`).
     """
 
     z_surface: float
@@ -94,6 +95,7 @@ class ScatteringLayer:
     single_scattering: str = "envelope"
     cbs: bool = False
     thickness: float = np.inf
+    width: float = np.inf
 
     def __post_init__(self) -> None:
         if self.single_scattering not in ("envelope", "field"):
@@ -108,6 +110,8 @@ class ScatteringLayer:
             raise ValueError("ls, la: expected positive mean free paths")
         if not self.thickness > 0:
             raise ValueError(f"thickness: expected a positive slab thickness in m (or inf), got {self.thickness!r}")
+        if not self.width > 0:
+            raise ValueError(f"width: expected a positive lateral extent in m (or inf), got {self.width!r}")
 
     @property
     def l_ext(self) -> float:
@@ -242,6 +246,28 @@ class ScatteringLayer:
         """b² = a² + 4D's: the diffuse halo's squared radius after a path s (module doc)."""
         return aperture_radius**2 + 4 * self.diffusion_constants(dim)[0] * np.maximum(s, 0.0)
 
+    def side_losses(self, b2: np.ndarray, aperture_radius: float, dim: int = 3) -> np.ndarray:
+        """The share of the halo under the aperture that a medium of finite `width` keeps, per lateral axis
+        to the power dim − 1: its sides, extrapolated by z_e, absorb the diffusing energy (the lateral
+        analogue of the bottom's images, `reflectance_density`). Per axis the halo is a Gaussian of variance
+        σ² = b²/2 centred on the axis; with absorbing walls at ±X, X = width/2 + z_e, its density is the image
+        series Σ_n (−1)ⁿ g(x − 2nX), so the share within |x| < a is Σ_n (−1)ⁿ ½[erf((a − 2nX)/√(2σ²)) +
+        erf((a + 2nX)/√(2σ²))] over the free one, erf(a/√(2σ²)) (Carslaw & Jaeger 1959, §2.2)."""
+        b2 = np.asarray(b2, dtype=np.float64)
+        if not np.isfinite(self.width):
+            return np.ones_like(b2)
+        from scipy.special import erf
+
+        x_wall = 0.5 * self.width + self.diffusion_constants(dim)[1]
+        root = np.sqrt(np.maximum(b2, 1e-30))  # √(2σ²)
+        a = aperture_radius
+        m_max = int(np.ceil(3 * float(root.max(initial=0.0)) / (2 * x_wall))) + 1
+        kept = np.zeros_like(b2)
+        for n in range(-m_max, m_max + 1):
+            kept += (-1) ** abs(n) * 0.5 * (erf((a - 2 * n * x_wall) / root) + erf((a + 2 * n * x_wall) / root))
+        ratio = np.clip(kept / np.maximum(erf(a / root), 1e-300), 0.0, 1.0)
+        return ratio ** (dim - 1)
+
     def intensity(
         self, tau: np.ndarray, c0: float, aperture_radius: float, dim: int, pulse_energy: float, orders_from: int = 1
     ) -> np.ndarray:
@@ -262,6 +288,7 @@ class ScatteringLayer:
                 reception = np.arccos(cos_d)
         t_r = 1.0 - self.reflection() ** 2
         rho = self.reflectance_density(s, orders_from, dim)
+        lateral = lateral * self.side_losses(b2, aperture_radius, dim)
         out = self.gain * reception * rho * v * pulse_energy * lateral * t_r**2
         return np.where(np.asarray(tau) > 0, out, 0.0)
 
