@@ -363,16 +363,16 @@ class Pipeline:
             if cfg.single_scattering_null:  # eq. (B2) needs the image first: no overlap
                 gammas = {n: imager.gamma(pw, fp) for n, fp in fps.items()}
                 image = imager.confocal(pw)
-                nulls, dets = self._second_stage(acq, pw, fps, band, truths, overlap=False, image=image)(gammas)()
+                nulls, dets, tracks = self._second_stage(acq, pw, fps, band, truths, False, image=image)(gammas)()
                 image = image if want_image else None
                 t2 = time.perf_counter()
             else:
-                stage = self._second_stage(acq, pw, fps, band, truths, overlap=True)
+                stage = self._second_stage(acq, pw, fps, band, truths, True)
                 gammas = {n: imager.gamma(pw, fp) for n, fp in fps.items()}
                 result = stage(gammas)
                 image = imager.confocal(pw) if want_image else None
                 t2 = time.perf_counter()
-                nulls, dets = result()
+                nulls, dets, tracks = result()
             tv = time.perf_counter()
             velocities, motion, notices = self._velocities(acq, pw, grid, dets)
             if self._level is not None and gammas and not NullPower.uniform(pw.freqs) and "bins" not in self._noticed:
@@ -384,11 +384,12 @@ class Pipeline:
                     pw.freqs.size,
                 )
             tv = time.perf_counter() - tv
-            tracks = (
-                self._tracker.update(gammas, acq.timestamp, nulls=nulls, motion=motion)
-                if self._tracker is not None and gammas
-                else []
-            )
+            if tracks is None:  # not updated with the detections: it takes the velocity estimates
+                tracks = (
+                    self._tracker.update(gammas, acq.timestamp, nulls=nulls, motion=motion)
+                    if self._tracker is not None and gammas
+                    else []
+                )
             t3 = time.perf_counter()
         return FrameResult(
             acq,
@@ -417,8 +418,10 @@ class Pipeline:
         truths: Any,
         overlap: bool,
         image: np.ndarray | None = None,
-    ) -> Callable[[Mapping[str, np.ndarray]], Callable[[], tuple[dict[str, NullModel], list]]]:
-        """The frame's null models and detections, as stage(gammas) → a call that returns (nulls, detections).
+    ) -> Callable[[Mapping[str, np.ndarray]], Callable[[], tuple[dict[str, NullModel], list, list | None]]]:
+        """The frame's null models, detections and tracks, as stage(gammas) → a call that returns (nulls,
+        detections, tracks). Tracks are None when a fingerprint has a velocity dictionary: the tracker then
+        waits for the velocity estimates (`_velocities`, after the image: they use the imager's kernel).
 
         Each γ-map's null model is fpcore.locate.null_of: the physical level (docs/design.md §4.9, eq. B1 ×
         the aperture factor), which does not need the map, then the CFAR on the map. With ``overlap`` a second
@@ -439,15 +442,21 @@ class Pipeline:
                 return {}
             return {n: physical_level_of(grid, acq, pw, fp, band, level) for n, fp in fps.items()}
 
+        with_velocity = any(e.spec.velocity_grid is not None and e.fp is not None for e in self._entries.values())
+
         def finish(
             gammas: Mapping[str, np.ndarray], levels: Mapping[str, tuple[np.ndarray, np.ndarray]]
-        ) -> tuple[dict[str, NullModel], list]:
+        ) -> tuple[dict[str, NullModel], list, list | None]:
             nulls = {n: null_of(g, grid, acq, pw, fps[n], band, level, image, levels.get(n)) for n, g in gammas.items()}
             dets: list[tuple[Detection, float | None]] = []
             for name, g in gammas.items():
                 for d in find_targets(g, grid, acq, band, name, cfg.n_peaks, cfg.interior, nulls[name], cfg.max_pfa):
                     dets.append((d, truth_error(np.asarray(d.position_m, float), truths, name)))
-            return nulls, dets
+            tracks = None
+            if not with_velocity:  # no velocity estimate to wait for (`_velocities` makes none)
+                tracker = self._tracker
+                tracks = tracker.update(gammas, acq.timestamp, nulls=nulls) if tracker is not None and gammas else []
+            return nulls, dets, tracks
 
         if not overlap or not fps:
             return lambda gammas: lambda: finish(gammas, physical())
@@ -455,7 +464,7 @@ class Pipeline:
             self._second = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fp-null")
         levels = self._second.submit(physical)
 
-        def stage(gammas: Mapping[str, np.ndarray]) -> Callable[[], tuple[dict[str, NullModel], list]]:
+        def stage(gammas: Mapping[str, np.ndarray]) -> Callable[[], tuple[dict[str, NullModel], list, list | None]]:
             assert self._second is not None
             return self._second.submit(lambda: finish(gammas, levels.result())).result
 
