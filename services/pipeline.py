@@ -165,8 +165,30 @@ class Pipeline:
             with self.lock:
                 try:
                     self.setup(cal)
+                    self._rehearse(cal)
                 except ValueError as exc:
                     log.error("set-up on the calibration geometry failed: %s", exc)
+
+    def _rehearse(self, acq: Acquisition) -> None:
+        """One frame's numerics on ``acq`` (the calibration, same geometry) as `process` runs them — γ-maps,
+        null models and detections on the second thread, the confocal image — with nothing kept: the tracker
+        is not updated. The frame-sized buffers, the compiled kernels and the second thread's malloc arena are
+        then warm when the first frame comes (issue 15, item 4)."""
+        imager, band = self._imager, self._band
+        if imager is None or band is None:
+            return
+        fps = {n: e.fp for n, e in self._entries.items() if e.fp is not None}
+        if not fps:
+            return
+        pw = imager.plane_waves(acq)
+        single = self.cfg.single_scattering_null
+        truths = truth_positions(acq.ground_truth)
+        stage = self._second_stage(acq, pw, fps, band, truths, not single, track=False)
+        gammas = {n: imager.gamma(pw, fp) for n, fp in fps.items()}
+        image = imager.confocal(pw) if self.cfg.publish_image or single else None
+        if single:
+            stage = self._second_stage(acq, pw, fps, band, truths, False, image=image, track=False)
+        stage(gammas)()
 
     def setup(self, acq: Acquisition) -> None:
         """Imager, tracker and every fingerprint for the geometry of ``acq``."""
@@ -418,6 +440,7 @@ class Pipeline:
         truths: Any,
         overlap: bool,
         image: np.ndarray | None = None,
+        track: bool = True,
     ) -> Callable[[Mapping[str, np.ndarray]], Callable[[], tuple[dict[str, NullModel], list, list | None]]]:
         """The frame's null models, detections and tracks, as stage(gammas) → a call that returns (nulls,
         detections, tracks). Tracks are None when a fingerprint has a velocity dictionary: the tracker then
@@ -430,7 +453,7 @@ class Pipeline:
         serial parts of one (the CFAR's filters, the peak search, the level's products) fill the other's idle
         time. The fingerprints' aperture factors (cached; made by the imager's kernel, which is not
         re-entrant) are made here first. ``image``: the frame's confocal image, for the single-scattering
-        level (``single_scattering_null``; no overlap)."""
+        level (``single_scattering_null``; no overlap). ``track``: False leaves the tracker alone (tracks None)."""
         level, grid, cfg = self._level, self.grid, self.cfg
         if level is not None:
             res = resolution_of(grid, acq, band)
@@ -453,7 +476,7 @@ class Pipeline:
                 for d in find_targets(g, grid, acq, band, name, cfg.n_peaks, cfg.interior, nulls[name], cfg.max_pfa):
                     dets.append((d, truth_error(np.asarray(d.position_m, float), truths, name)))
             tracks = None
-            if not with_velocity:  # no velocity estimate to wait for (`_velocities` makes none)
+            if track and not with_velocity:  # no velocity estimate to wait for (`_velocities` makes none)
                 tracker = self._tracker
                 tracks = tracker.update(gammas, acq.timestamp, nulls=nulls) if tracker is not None and gammas else []
             return nulls, dets, tracks
