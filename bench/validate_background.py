@@ -134,9 +134,7 @@ def compare(
         raise SystemExit(f"{path}: frequencies differ from the setup's window (stale cache? delete it)")
     if slab:  # the FL medium is a slab: the model's diffusion envelope gets the same bottom and sides
         layer_kw = {**layer_kw, "thickness": s.thickness, "width": s.width}
-        print(
-            f"  {dim}D model with the FL slab's {s.thickness * 1e3:.1f} mm thickness, {s.width * 1e3:.0f} mm width"
-        )
+        print(f"  {dim}D model with the FL slab's {s.thickness * 1e3:.1f} mm thickness, {s.width * 1e3:.0f} mm width")
     if match_dispersion:  # ℓ_s(f) = ℓ_s(f_c) (f/f_c)^(−ls_exponent), fitted on the FL medium's ℓ_s(f)
         expo = -float(np.polyfit(np.log(freqs / s.f_c), np.log(data["ls"]), 1)[0])
         layer_kw = {**layer_kw, "ls_exponent": round(expo, 3), "f_ref": s.f_c}

@@ -9,7 +9,11 @@ instead: a short-lived client session connects to the session's own loopback lis
 64 KiB messages on a key outside ``fp/**`` (no recorder sees them) until one comes through the pool;
 measured, the first frame's put then takes 13–16 ms. A receiver maps a sender's pool at its first
 message from it (≈ 50 ms once): warming sessions also subscribe to the warm-up key, so those already
-linked when another one warms (the processor when a publisher joins) map its pool then.
+linked when another one warms map its pool then. A publisher that joins a running processor usually warms
+before the processor's subscription has reached it, so it also puts one warm-up message once its subscribers
+match (:func:`announce_pool`): measured on quick 3-D frames (`bench/bench_first_frame.py`), the first frame's
+latency was 1.1–2.5× the median (over 2× in 7 of 22 runs: the processor mapping the pool at the first
+frame), and is 1.06–1.43× with it (20 runs).
 
 Only for sessions that send large messages (``BusConfig.warm_shm``: ``fp process``, ``fp publish``),
 that have SHM on and listen on loopback TCP, without user/password authentication (the helper
@@ -28,7 +32,7 @@ import zenoh
 
 from services.bus_exposure import is_loopback, listen_endpoints
 
-__all__ = ["WARM_KEYS", "pin_ephemeral_ports", "repin_after", "wants_warmup", "warm_shm_pool"]
+__all__ = ["WARM_KEYS", "announce_pool", "pin_ephemeral_ports", "repin_after", "wants_warmup", "warm_shm_pool"]
 
 #: Where warm-up messages go; a warming session also subscribes here (``services.bus.open_session``), so a
 #: session that warms later (a publisher joining a processor) reaches it too, and it maps that session's
@@ -118,3 +122,20 @@ def warm_shm_pool(session: zenoh.Session, cfg: zenoh.Config, timeout: float = 5.
                 sub.undeclare()
     except zenoh.ZError:
         return False
+
+
+def announce_pool(session: zenoh.Session) -> None:
+    """One small message on this session's warm-up key (``WARM_KEYS``) through its pool, so that the receivers
+    linked by now — a processor a publisher has just seen — map the pool before the first frame, not at it
+    (≈ 20–60 ms once). A publisher calls it after its subscribers match: a processor that joined the bus
+    first had not yet reached this session when its own warm-up ran. Best effort: nothing happens on error."""
+    try:
+        pub = session.declare_publisher(
+            f"_fp_warmup/{session.info.zid()}", congestion_control=zenoh.CongestionControl.BLOCK
+        )
+        try:
+            pub.put(bytes(_PAYLOAD))
+        finally:
+            pub.undeclare()
+    except zenoh.ZError:
+        pass

@@ -9,6 +9,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numba  # noqa: F401  (a required dependency: its absence fails these tests, never skips them)
@@ -146,3 +147,35 @@ def test_a_pinned_port_taken_meanwhile_is_replaced(monkeypatch: pytest.MonkeyPat
         with open_session(BusConfig(listen=[EPHEMERAL], connect=[], shm="64", warm_shm=True)) as session:
             assert session.info.zid() is not None
         assert len(probes) == 2 and probes[0] == busy != probes[1]
+
+
+def test_the_publisher_announces_its_pool_before_its_first_frame() -> None:
+    """A processor that joined the bus before the publisher never got the publisher's own warm-up messages, so it
+    mapped the publisher's SHM pool at the first frame (20–60 ms once: the first frame's latency was over 2× the
+    median in ~1 run in 3). The publisher now puts one warm-up message (services.bus_warm.announce_pool) once its
+    subscribers match: the processor receives it — and maps the pool — before the first RF frame."""
+    from services.bus import EPHEMERAL, BusConfig, free_port, open_session
+    from services.bus_warm import WARM_KEYS
+    from services.nodes.publisher import Publisher
+    from services.sources import AcquisitionSource, born_frames
+    from services.topics import keys
+
+    rig, hub = "announce", f"tcp/127.0.0.1:{free_port()}"
+    frames, _ = born_frames(1)
+    seen: list[str] = []
+    with open_session(BusConfig(listen=[hub], connect=[], shm="off")) as proc:
+        subs = [proc.declare_subscriber(k, lambda s: seen.append(str(s.key_expr))) for k in (WARM_KEYS, keys(rig).rf)]
+        token = proc.liveliness().declare_token(keys(rig).alive("processor", "p0"))
+        with open_session(BusConfig(listen=[EPHEMERAL], connect=[hub], shm="off")) as pub_session:
+            zid = str(pub_session.info.zid())
+            src = AcquisitionSource(frames, repeat=1, limit=1)
+            Publisher(pub_session, rig, src, pace="rate", rate=100.0, limit=1, wait_for=("processor",)).run()
+            deadline = time.monotonic() + 10
+            while keys(rig).rf not in seen and time.monotonic() < deadline:
+                time.sleep(0.02)
+        token.undeclare()
+        for sub in subs:
+            sub.undeclare()
+    assert keys(rig).rf in seen, seen
+    warm = [i for i, k in enumerate(seen) if k == f"_fp_warmup/{zid}"]
+    assert warm and warm[0] < seen.index(keys(rig).rf), seen

@@ -18,7 +18,8 @@ Pacing (``pace``):
 
 Before the first frame the publisher waits for the liveliness tokens of the nodes in ``wait_for``
 (``fp/<rig>/alive/processor``, the recorder's ``fp/*/alive/recorder``), so nothing is published to
-nobody; after the last frame it waits for the same nodes' barrier replies (``services.bus.sync_with``)
+nobody, then announces its SHM pool to them (``services.bus_warm.announce_pool``: mapped before the first
+frame, not at it); after the last frame it waits for the same nodes' barrier replies (``services.bus.sync_with``)
 before it closes, so a frame still in its shared memory is not lost; its own token is
 ``fp/<rig>/alive/publisher``. Ingest items are untrusted: they are decoded
 and validated (shape, dtype, NaN, truncation, version, size) and refused with an ErrorReport on
@@ -37,6 +38,7 @@ from typing import Any
 import zenoh
 
 from services.bus import sync_with, wait_for_matching, wait_for_token
+from services.bus_warm import announce_pool
 from services.messages import RFFrame
 from services.nodes.base import Node
 from services.sources import Item, Source
@@ -222,6 +224,7 @@ class Publisher(Node):
                     )
             if self.wait_for and not wait_for_matching(rf_pub, self.wait_timeout):
                 log.warning("no subscriber to %s after %.0f s; publishing anyway", self.keys.rf, self.wait_timeout)
+            announce_pool(s)  # the processor maps this session's SHM pool now, not at the first frame
             t0_wall: float | None = None
             t0_src = 0.0
             for item in self.source:
