@@ -127,8 +127,9 @@ def warm_shm_pool(session: zenoh.Session, cfg: zenoh.Config, timeout: float = 5.
 def announce_pool(session: zenoh.Session) -> None:
     """One small message on this session's warm-up key (``WARM_KEYS``) through its pool, so that the receivers
     linked by now — a processor a publisher has just seen — map the pool before the first frame, not at it
-    (≈ 20–60 ms once). A publisher calls it after its subscribers match: a processor that joined the bus
-    first had not yet reached this session when its own warm-up ran. Best effort: nothing happens on error."""
+    (≈ 20–60 ms once). A publisher calls it after the nodes it waits for match its RF key: a processor that
+    joined the bus first had not yet reached this session when its own warm-up ran. Best effort: nothing
+    happens on error."""
     try:
         pub = session.declare_publisher(
             f"_fp_warmup/{session.info.zid()}", congestion_control=zenoh.CongestionControl.BLOCK

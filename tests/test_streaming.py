@@ -16,6 +16,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -430,9 +431,13 @@ def test_ingest_validates_and_forwards(data) -> None:
     rf[0, 0, 0] = np.inf
     bad = encode(RFFrame.model_construct(**{**dict(frame), "rf": rf, "frame_index": 9}))
     stop = threading.Event()
+    # The ingest client creates its SHM pool when it opens, as `fp publish` does (services.bus_warm): created at
+    # its first large put instead, the pool's next message — the good frame — could reach the publisher before
+    # the pool was mappable there, and zenoh drops such a sample silently (≈ 1 run in 8 here).
+    producer = replace(client(port), warm_shm=True)
     with (
         open_session(BusConfig(listen=[f"tcp/127.0.0.1:{port}"], connect=[])) as s_pub,
-        open_session(client(port)) as s,
+        open_session(producer) as s,
     ):
         src = IngestSource(rig)
         pub = Publisher(s_pub, rig, src, pace="none", wait_for=())

@@ -222,9 +222,11 @@ class Publisher(Node):
                     log.warning(
                         "no %s seen on fp/%s after %.0f s; publishing anyway", node, self.rig, self.wait_timeout
                     )
-            if self.wait_for and not wait_for_matching(rf_pub, self.wait_timeout):
-                log.warning("no subscriber to %s after %.0f s; publishing anyway", self.keys.rf, self.wait_timeout)
-            announce_pool(s)  # the processor maps this session's SHM pool now, not at the first frame
+            if self.wait_for:
+                if wait_for_matching(rf_pub, self.wait_timeout):
+                    announce_pool(s)  # the nodes waited for map this session's SHM pool now, not at the first frame
+                else:
+                    log.warning("no subscriber to %s after %.0f s; publishing anyway", self.keys.rf, self.wait_timeout)
             t0_wall: float | None = None
             t0_src = 0.0
             for item in self.source:
