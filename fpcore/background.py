@@ -269,12 +269,15 @@ class NullLevel:
         resolution: tuple[float, float],
         gamma: np.ndarray | None = None,
         image: np.ndarray | None = None,
+        aperture: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """(level, visible): γ²'s null level up to a constant, and the nodes where the fingerprint can be
         tested (A ≥ `min_aperture`). With the map `gamma` (and `single_scattering`), the level is the
         fitted mixture with the single-scattering level (class doc); `image`: the frame's confocal image
-        if the caller has it (else it is made here, once per frame)."""
-        a = self.aperture(acq, pw, fp, resolution)
+        if the caller has it (else it is made here, once per frame); `aperture`: A(r) already made by
+        `aperture` (a caller on another thread than the imager's must pass it: making it runs the imager's
+        kernel, which is not re-entrant)."""
+        a = self.aperture(acq, pw, fp, resolution) if aperture is None else aperture
         if self.power.uniform(pw.freqs):
             lev = self.power.gamma_level(pw, fp) * a
         else:  # decimated band (n_freq): no periodic envelope spectrum; the CFAR takes the depth trend alone

@@ -18,6 +18,7 @@ from functools import partial
 
 import numpy as np
 
+from .kernel import default_threads
 from .kernel_presum_loops import _jit, nb, pool, split
 
 __all__ = ["envelope_columns"]
@@ -60,9 +61,10 @@ if nb is not None:
                         e[m, o, i, 1] = ei[b * ni + i]
 
 
-def envelope_columns(data: np.ndarray, cols: np.ndarray, out: np.ndarray, nthreads: int = 2) -> None:
+def envelope_columns(data: np.ndarray, cols: np.ndarray, out: np.ndarray, nthreads: int | None = None) -> None:
     """out[:, o] = Ê(·, o, ·) (module doc) for the output directions o in `cols`, in place; data and out:
-    C-contiguous complex64 (N_f, N_o, N_i). Without numba, the FFT route (`envelope_spectrum`) on those columns."""
+    C-contiguous complex64 (N_f, N_o, N_i); nthreads: default FP_THREADS or the CPU count. Without numba, the
+    FFT route (`envelope_spectrum`) on those columns."""
     if data.dtype != np.complex64 or out.dtype != np.complex64 or out.shape != data.shape:
         raise ValueError(
             f"data, out: expected complex64 arrays of one shape, got {data.dtype} {data.shape}, {out.dtype} {out.shape}"
@@ -78,7 +80,7 @@ def envelope_columns(data: np.ndarray, cols: np.ndarray, out: np.ndarray, nthrea
     nf, _, ni = data.shape
     R = data.view(np.float32).reshape(*data.shape, 2)
     e = out.view(np.float32).reshape(*out.shape, 2)
-    nt = max(1, min(nthreads, cols.size))
+    nt = max(1, min(nthreads or default_threads(), cols.size))
     width = _BLOCK_O * ni
     X = np.empty((nt, 2, nf, width), np.float32)
     E = np.empty((nt, 2, width), np.float32)

@@ -45,11 +45,13 @@ def physical_level_of(
     fp: Fingerprint,
     band: tuple[float, float],
     level: NullLevel,
+    aperture: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(level, visible) of `level` for one fingerprint on this frame (eq. B1 × the aperture factor; no
     single-scattering mixture, which needs the map): what `null_of` passes to the CFAR, made before the map
-    when the caller has something to overlap it with."""
-    return level.level(acq, pw, fp, resolution_of(grid, acq, band))
+    when the caller has something to overlap it with. `aperture`: the fingerprint's A(r) from
+    `level.aperture`, made beforehand on the imager's thread (off it, the imager must not be called)."""
+    return level.level(acq, pw, fp, resolution_of(grid, acq, band), aperture=aperture)
 
 
 def null_of(

@@ -13,7 +13,8 @@ linked when another one warms map its pool then. A publisher that joins a runnin
 before the processor's subscription has reached it, so it also puts one warm-up message once its subscribers
 match (:func:`announce_pool`): measured on quick 3-D frames (`bench/bench_first_frame.py`), the first frame's
 latency was 1.1–2.5× the median (over 2× in 7 of 22 runs: the processor mapping the pool at the first
-frame), and is 1.06–1.43× with it (20 runs).
+frame), and is 1.06–1.43× with it (20 runs; later that day, a noisier hour, 1.09–2.45 over 40 runs, 4 of
+them above 2×).
 
 Only for sessions that send large messages (``BusConfig.warm_shm``: ``fp process``, ``fp publish``),
 that have SHM on and listen on loopback TCP, without user/password authentication (the helper
@@ -40,6 +41,7 @@ __all__ = ["WARM_KEYS", "announce_pool", "pin_ephemeral_ports", "repin_after", "
 WARM_KEYS = "_fp_warmup/**"
 
 _PAYLOAD = 64 << 10  # above zenoh's message_size_threshold (3 KiB by default)
+_WARMED: set[str] = set()  # zids of the sessions whose pool `warm_shm_pool` made (announce_pool's condition)
 
 
 def _loopback_tcp(cfg: zenoh.Config) -> list[str]:
@@ -112,6 +114,7 @@ def warm_shm_pool(session: zenoh.Session, cfg: zenoh.Config, timeout: float = 5.
                     pub.put(bytes(_PAYLOAD))
                     try:
                         if received.get(timeout=0.5):
+                            _WARMED.add(str(session.info.zid()))
                             return True
                         time.sleep(0.02)  # it came by TCP: the pool is still being made
                     except queue.Empty:  # the helper's subscription may not have reached the session yet
@@ -129,7 +132,11 @@ def announce_pool(session: zenoh.Session) -> None:
     linked by now — a processor a publisher has just seen — map the pool before the first frame, not at it
     (≈ 20–60 ms once). A publisher calls it after the nodes it waits for match its RF key: a processor that
     joined the bus first had not yet reached this session when its own warm-up ran. Best effort: nothing
-    happens on error."""
+    happens on error, nor for a session whose pool `warm_shm_pool` did not make: the announcement would
+    create the pool itself, and the first frame would be the pool's next message, which a receiver that
+    cannot map the pool yet drops."""
+    if str(session.info.zid()) not in _WARMED:
+        return
     try:
         pub = session.declare_publisher(
             f"_fp_warmup/{session.info.zid()}", congestion_control=zenoh.CongestionControl.BLOCK

@@ -165,9 +165,13 @@ class Pipeline:
             with self.lock:
                 try:
                     self.setup(cal)
-                    self._rehearse(cal)
                 except ValueError as exc:
                     log.error("set-up on the calibration geometry failed: %s", exc)
+                    return
+                try:
+                    self._rehearse(cal)
+                except Exception as exc:  # a warm-up only: the first frame pays instead, the node starts
+                    log.warning("the rehearsal frame on the calibration failed (%s: %s)", type(exc).__name__, exc)
 
     def _rehearse(self, acq: Acquisition) -> None:
         """One frame's numerics on ``acq`` (the calibration, same geometry) as `process` runs them — γ-maps,
@@ -210,7 +214,12 @@ class Pipeline:
                 memory_budget=cfg.memory_budget,
             )
             grid = imager.grid
-            self._level = NullLevel(imager, single_scattering=self.cfg.single_scattering_null, cfar=self.cfg.cfar)
+            self._level = NullLevel(
+                imager,
+                single_scattering=self.cfg.single_scattering_null,
+                cfar=self.cfg.cfar,
+                cache=max(8, 2 * len(self._entries)),  # every fingerprint's aperture factor kept (one map each)
+            )
             self._band = band
             self._geom = geometry_key(acq)
             self._ref = acq
@@ -455,15 +464,15 @@ class Pipeline:
         re-entrant) are made here first. ``image``: the frame's confocal image, for the single-scattering
         level (``single_scattering_null``; no overlap). ``track``: False leaves the tracker alone (tracks None)."""
         level, grid, cfg = self._level, self.grid, self.cfg
-        if level is not None:
+        apertures: dict[str, np.ndarray] = {}
+        if level is not None:  # here, on the imager's thread; the second thread gets them as arrays
             res = resolution_of(grid, acq, band)
-            for fp in fps.values():
-                level.aperture(acq, pw, fp, res)
+            apertures = {n: level.aperture(acq, pw, fp, res) for n, fp in fps.items()}
 
         def physical() -> dict[str, tuple[np.ndarray, np.ndarray]]:
             if level is None or level.single_scattering:
                 return {}
-            return {n: physical_level_of(grid, acq, pw, fp, band, level) for n, fp in fps.items()}
+            return {n: physical_level_of(grid, acq, pw, fp, band, level, apertures[n]) for n, fp in fps.items()}
 
         with_velocity = any(e.spec.velocity_grid is not None and e.fp is not None for e in self._entries.values())
 

@@ -153,20 +153,24 @@ def test_the_publisher_announces_its_pool_before_its_first_frame() -> None:
     """A processor that joined the bus before the publisher never got the publisher's own warm-up messages, so it
     mapped the publisher's SHM pool at the first frame (20–60 ms once: the first frame's latency was over 2× the
     median in ~1 run in 3). The publisher now puts one warm-up message (services.bus_warm.announce_pool) once its
-    subscribers match: the processor receives it — and maps the pool — before the first RF frame."""
+    subscribers match: the processor receives it — and maps the pool — before the first RF frame. A session
+    whose pool was not made at open does not announce (the announcement would make it; test below)."""
     from services.bus import EPHEMERAL, BusConfig, free_port, open_session
     from services.bus_warm import WARM_KEYS
     from services.nodes.publisher import Publisher
     from services.sources import AcquisitionSource, born_frames
     from services.topics import keys
 
+    if BusConfig(shm="auto").shm_pool_bytes() is None:
+        pytest.skip("/dev/shm has no room for a pool: SHM is off here")
     rig, hub = "announce", f"tcp/127.0.0.1:{free_port()}"
     frames, _ = born_frames(1)
     seen: list[str] = []
     with open_session(BusConfig(listen=[hub], connect=[], shm="off")) as proc:
         subs = [proc.declare_subscriber(k, lambda s: seen.append(str(s.key_expr))) for k in (WARM_KEYS, keys(rig).rf)]
         token = proc.liveliness().declare_token(keys(rig).alive("processor", "p0"))
-        with open_session(BusConfig(listen=[EPHEMERAL], connect=[hub], shm="off")) as pub_session:
+        # the publisher's session warms its own pool at open (as fp publish): only such a session announces it
+        with open_session(BusConfig(listen=[EPHEMERAL], connect=[hub], shm="64", warm_shm=True)) as pub_session:
             zid = str(pub_session.info.zid())
             src = AcquisitionSource(frames, repeat=1, limit=1)
             Publisher(pub_session, rig, src, pace="rate", rate=100.0, limit=1, wait_for=("processor",)).run()
@@ -179,3 +183,27 @@ def test_the_publisher_announces_its_pool_before_its_first_frame() -> None:
     assert keys(rig).rf in seen, seen
     warm = [i for i, k in enumerate(seen) if k == f"_fp_warmup/{zid}"]
     assert warm and warm[0] < seen.index(keys(rig).rf), seen
+
+
+def test_a_session_without_a_warmed_pool_does_not_announce() -> None:
+    """announce_pool puts nothing for a session whose pool warm_shm_pool did not make (SHM off here): the
+    announcement would create the pool, and the first frame would be the pool's next message."""
+    from services.bus import EPHEMERAL, BusConfig, free_port, open_session
+    from services.bus_warm import WARM_KEYS, announce_pool
+
+    hub = f"tcp/127.0.0.1:{free_port()}"
+    seen: list[str] = []
+    with open_session(BusConfig(listen=[hub], connect=[], shm="off")) as listener:
+        sub = listener.declare_subscriber(WARM_KEYS, lambda s: seen.append(str(s.key_expr)))
+        with open_session(BusConfig(listen=[EPHEMERAL], connect=[hub], shm="off")) as other:
+            probe = other.declare_publisher("_fp_warmup/probe")
+            deadline = time.monotonic() + 10
+            while not seen and time.monotonic() < deadline:  # the subscription has reached `other`
+                probe.put(b"x")
+                time.sleep(0.05)
+            probe.undeclare()
+            n, zid = len(seen), str(other.info.zid())
+            announce_pool(other)
+            time.sleep(0.5)
+        sub.undeclare()
+    assert n >= 1 and f"_fp_warmup/{zid}" not in seen[n:], seen
