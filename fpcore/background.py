@@ -29,12 +29,11 @@ from __future__ import annotations
 from collections import OrderedDict
 
 import numpy as np
-import scipy.fft as sfft
 from scipy.ndimage import uniform_filter
 
 from .acquisition import Acquisition, PlaneWaveData, Spectrum, to_plane_waves
 from .cfar import DEFAULT_CFAR, check_cfar
-from .envelope_loops import envelope_columns
+from .envelope_loops import envelope_columns, envelope_spectrum
 from .fingerprint import Fingerprint
 from .geometry import from_xyz
 from .grid import Grid
@@ -42,25 +41,9 @@ from .kernel import GridTransform, Kernel, wavevectors
 from .kernel_presum import PresumTransform
 from .likelihood import Imager
 from .speckle_level import SpeckleLevel, mix
+from .support import SupportProduct, angular_support
 
 __all__ = ["envelope_spectrum", "NullPower", "NullLevel"]
-
-
-def envelope_spectrum(data: np.ndarray) -> np.ndarray:
-    """Ê(ν, o, i) for ν = m δf, m = 0 … N_f − 1: the spectrum of |a(t)|², a the band's analytic signal.
-
-    data: (N_f, N_o, N_i) on uniformly spaced frequencies (the time axis is periodic, 1/δf, like γ's).
-    The band is moved to baseband first (|a|² does not change); |a|² has bandwidth 2(N_f − 1)δf, so a
-    time axis of 2 N_f samples holds it without aliasing.
-    """
-    n_f = data.shape[0]
-    n_t = 2 * n_f
-    flat = np.asarray(data).reshape(n_f, -1)  # transforms along the first axis: no transposed copies
-    a = sfft.ifft(flat, n=n_t, axis=0, workers=-1)
-    e = a.real**2 + a.imag**2
-    e *= n_t  # scale: Σ_t |a|² = Σ_f |R_f|² (Parseval)
-    spec = sfft.rfft(e, axis=0, workers=-1)[:n_f]  # |a|² is real: ν ≥ 0 is all there is
-    return spec.reshape(data.shape).astype(np.complex64, copy=False)
 
 
 class NullPower:
@@ -73,7 +56,7 @@ class NullPower:
         # Ê_F e^{−iK·r0} per fingerprint, with its output directions
         self._fingerprints: OrderedDict[tuple, tuple[np.ndarray, np.ndarray]] = OrderedDict()
         self._data: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # Ê_R of the last frame, directions made
-        self._w: tuple[np.ndarray, np.ndarray] | None = None  # the kernel's weights and their support
+        self._weights = SupportProduct()  # the kernel's weights, zero off the fingerprint's support
         self._cache = cache
 
     @staticmethod
@@ -120,7 +103,7 @@ class NullPower:
         if hit is None:
             t = np.conj(envelope_spectrum(np.asarray(fp.data)))
             t[1:] *= 2.0
-            support = np.flatnonzero(np.any(t != 0, axis=(0, 2)))
+            support = angular_support(t)
             K = wavevectors(nu, pw.out_sines, pw.in_sines, pw.c0, self.grid.ndim)
             t = (t.ravel() * np.exp(-1j * (K @ from_xyz(fp.r0, self.grid.ndim)))).astype(np.complex64)
             t = np.ascontiguousarray(t.reshape(np.shape(fp.data))[:, support])
@@ -146,24 +129,11 @@ class NullPower:
         done[need] = True
         return e
 
-    def _weights(self, shape: tuple[int, ...], support: np.ndarray) -> np.ndarray:
-        """The kernel's weight buffer, zero outside `support` (kept between calls: only the directions of the
-        last support that the new one lacks are cleared)."""
-        if self._w is None or self._w[0].shape != shape:
-            self._w = (np.zeros(shape, np.complex64), support)
-        w, last = self._w
-        if last is not support and not np.array_equal(last, support):
-            w[:, np.setdiff1d(last, support)] = 0
-        self._w = (w, support)
-        return w
-
     def power(self, pw: PlaneWaveData, fp: Fingerprint) -> np.ndarray:
         """P(r) ≥ 0 on the grid (eq. B1), float64."""
         kern, nu = self._kernel(pw)
         t, support = self._fingerprint_side(pw, fp, nu)
-        e = self._data_side(pw, support)
-        w = self._weights(e.shape, support)
-        w[:, support] = e[:, support] * t
+        w = self._weights(self._data_side(pw, support), support, t)
         p = kern(w.ravel()).real.astype(np.float64)
         return np.maximum(p, 0.0)
 

@@ -1,8 +1,9 @@
-"""Envelope spectra of a frame's plane-wave data by frequency autocorrelation (eq. B1's Ê_R; docs/design.md §4.9).
+"""Envelope spectra Ê of plane-wave data (eq. B1 of fpcore.background; docs/design.md §4.9): by FFT
+(`envelope_spectrum`, any array) and by frequency autocorrelation (`envelope_columns`, a frame's directions).
 
 For a band record R_f on uniformly spaced bins f = 0 … N_f − 1, the spectrum of its energy envelope |a(t)|²
-(a the band's analytic signal on a periodic axis of 2N_f samples, `fpcore.background.envelope_spectrum`) is
-the autocorrelation of the band itself, exactly:
+(a the band's analytic signal on a periodic axis of 2N_f samples, `envelope_spectrum`) is the
+autocorrelation of the band itself, exactly:
 
     Ê(m) = Σ_{f=0}^{N_f−1−m} R_{f+m} R_f*,   m = 0 … N_f − 1,
 
@@ -17,11 +18,30 @@ from __future__ import annotations
 from functools import partial
 
 import numpy as np
+import scipy.fft as sfft
 
 from .kernel import default_threads
 from .kernel_presum_loops import _jit, nb, pool, split
 
-__all__ = ["envelope_columns"]
+__all__ = ["envelope_columns", "envelope_spectrum"]
+
+
+def envelope_spectrum(data: np.ndarray) -> np.ndarray:
+    """Ê(ν, o, i) for ν = m δf, m = 0 … N_f − 1: the spectrum of |a(t)|², a the band's analytic signal.
+
+    data: (N_f, N_o, N_i) on uniformly spaced frequencies (the time axis is periodic, 1/δf, like γ's).
+    The band is moved to baseband first (|a|² does not change); |a|² has bandwidth 2(N_f − 1)δf, so a
+    time axis of 2 N_f samples holds it without aliasing.
+    """
+    n_f = data.shape[0]
+    n_t = 2 * n_f
+    flat = np.asarray(data).reshape(n_f, -1)  # transforms along the first axis: no transposed copies
+    a = sfft.ifft(flat, n=n_t, axis=0, workers=-1)
+    e = a.real**2 + a.imag**2
+    e *= n_t  # scale: Σ_t |a|² = Σ_f |R_f|² (Parseval)
+    spec = sfft.rfft(e, axis=0, workers=-1)[:n_f]  # |a|² is real: ν ≥ 0 is all there is
+    return spec.reshape(data.shape).astype(np.complex64, copy=False)
+
 
 _BLOCK_O = 8  # output directions per block: N_f × 8 N_i complex values (≈ 140 kB for 89 × 8 × 25), in L2
 
@@ -73,8 +93,6 @@ def envelope_columns(data: np.ndarray, cols: np.ndarray, out: np.ndarray, nthrea
     if cols.size == 0:
         return
     if nb is None or not (data.flags.c_contiguous and out.flags.c_contiguous):
-        from .background import envelope_spectrum
-
         out[:, cols] = envelope_spectrum(data[:, cols])
         return
     nf, _, ni = data.shape

@@ -27,6 +27,7 @@ from .grid import Grid
 from .kernel import GridTransform, Kernel, KernelType, wavevectors
 from .kernel_gpu import GpuTransform
 from .kernel_presum import PresumTransform
+from .support import SupportProduct, angular_support
 
 __all__ = ["Imager", "ImagingConfig", "KERNELS", "make_kernel"]
 
@@ -133,7 +134,7 @@ class Imager:
         self._tiled: _LRU[tuple, list[tuple[tuple[slice, ...], GridTransform, np.ndarray]]] = _LRU(max_kernels)
         # a template on its angular support: (output directions where it is not zero, its values there)
         self._supported: _LRU[tuple, tuple[np.ndarray, np.ndarray]] = _LRU(max_templates)
-        self._weights: tuple[np.ndarray, np.ndarray] | None = None  # γ's weight buffer and its support
+        self._weights = SupportProduct()  # γ's numerator weights, zero off the fingerprint's support
 
     @property
     def grid(self) -> Grid:
@@ -197,28 +198,17 @@ class Imager:
         self._tiled.drop(lambda k: k[0] == fp.token)
 
     def _weights_of(self, pw: PlaneWaveData, fp: Fingerprint) -> np.ndarray:
-        """R ∘ template (γ's numerator weights, flat), made on the template's angular support only: the rest
-        of the kept buffer stays zero (a fingerprint's support is ~20 % of a full-size frame's directions),
-        so the product and its 80 MB array are not made on every sample."""
+        """R ∘ template (γ's numerator weights, flat), made on the template's angular support only
+        (fpcore.support): not a full-size product on every map."""
         key = (fp.token, self._key(pw))
         hit = self._supported.get(key)
         if hit is None:
             t = self.template(pw, fp).reshape(pw.data.shape)
-            support = np.flatnonzero(np.any(t != 0, axis=(0, 2)))
+            support = angular_support(t)
             hit = (support, np.ascontiguousarray(t[:, support]))
             self._supported.put(key, hit)
         support, t_sup = hit
-        if support.size == pw.data.shape[1]:
-            return pw.data.ravel() * t_sup.ravel()
-        dtype = np.result_type(pw.data.dtype, t_sup.dtype)
-        if self._weights is None or self._weights[0].shape != pw.data.shape or self._weights[0].dtype != dtype:
-            self._weights = (np.zeros(pw.data.shape, dtype), support)
-        w, last = self._weights
-        if last is not support and not np.array_equal(last, support):
-            w[:, np.setdiff1d(last, support)] = 0
-        self._weights = (w, support)
-        w[:, support] = pw.data[:, support] * t_sup
-        return w.ravel()
+        return self._weights(pw.data, support, t_sup).ravel()
 
     def field(self, pw: PlaneWaveData) -> np.ndarray:
         """Complex confocal field B(r) = Σ R_θθ e^{iK·r} (paper S7 eq. I_BF; F ≡ 1)."""

@@ -201,7 +201,7 @@ def open_session(bus: BusConfig) -> Iterator[zenoh.Session]:
     with session:
         sink = None
         if warm:
-            from services.bus_warm import WARM_KEYS, warm_shm_pool
+            from services.bus_warm import WARM_KEYS, forget_pool, warm_shm_pool
 
             sink = session.declare_subscriber(WARM_KEYS, lambda sample: None)  # others' warm-ups map their pools
             warm_shm_pool(session, cfg)
@@ -210,6 +210,7 @@ def open_session(bus: BusConfig) -> Iterator[zenoh.Session]:
         finally:
             if sink is not None:
                 sink.undeclare()
+                forget_pool(session)
 
 
 def add_bus_arguments(

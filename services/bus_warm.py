@@ -33,7 +33,15 @@ import zenoh
 
 from services.bus_exposure import is_loopback, listen_endpoints
 
-__all__ = ["WARM_KEYS", "announce_pool", "pin_ephemeral_ports", "repin_after", "wants_warmup", "warm_shm_pool"]
+__all__ = [
+    "WARM_KEYS",
+    "announce_pool",
+    "forget_pool",
+    "pin_ephemeral_ports",
+    "repin_after",
+    "wants_warmup",
+    "warm_shm_pool",
+]
 
 #: Where warm-up messages go; a warming session also subscribes here (``services.bus.open_session``), so a
 #: session that warms later (a publisher joining a processor) reaches it too, and it maps that session's
@@ -125,6 +133,11 @@ def warm_shm_pool(session: zenoh.Session, cfg: zenoh.Config, timeout: float = 5.
                 sub.undeclare()
     except zenoh.ZError:
         return False
+
+
+def forget_pool(session: zenoh.Session) -> None:
+    """The session is closing: `announce_pool` no longer applies to it."""
+    _WARMED.discard(str(session.info.zid()))
 
 
 def announce_pool(session: zenoh.Session) -> None:

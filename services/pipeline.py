@@ -185,14 +185,7 @@ class Pipeline:
         if not fps:
             return
         pw = imager.plane_waves(acq)
-        single = self.cfg.single_scattering_null
-        truths = truth_positions(acq.ground_truth)
-        stage = self._second_stage(acq, pw, fps, band, truths, not single, track=False)
-        gammas = {n: imager.gamma(pw, fp) for n, fp in fps.items()}
-        image = imager.confocal(pw) if self.cfg.publish_image or single else None
-        if single:
-            stage = self._second_stage(acq, pw, fps, band, truths, False, image=image, track=False)
-        stage(gammas)()
+        self._numerics(acq, pw, fps, band, truth_positions(acq.ground_truth), self.cfg.publish_image, track=False)
 
     def setup(self, acq: Acquisition) -> None:
         """Imager, tracker and every fingerprint for the geometry of ``acq``."""
@@ -390,20 +383,9 @@ class Pipeline:
             t1 = time.perf_counter()
             want_image = cfg.publish_image if with_image is None else with_image
             grid = imager.grid
-            truths = truth_positions(acq.ground_truth)
-            if cfg.single_scattering_null:  # eq. (B2) needs the image first: no overlap
-                gammas = {n: imager.gamma(pw, fp) for n, fp in fps.items()}
-                image = imager.confocal(pw)
-                nulls, dets, tracks = self._second_stage(acq, pw, fps, band, truths, False, image=image)(gammas)()
-                image = image if want_image else None
-                t2 = time.perf_counter()
-            else:
-                stage = self._second_stage(acq, pw, fps, band, truths, True)
-                gammas = {n: imager.gamma(pw, fp) for n, fp in fps.items()}
-                result = stage(gammas)
-                image = imager.confocal(pw) if want_image else None
-                t2 = time.perf_counter()
-                nulls, dets, tracks = result()
+            gammas, image, nulls, dets, tracks, t2 = self._numerics(
+                acq, pw, fps, band, truth_positions(acq.ground_truth), want_image
+            )
             tv = time.perf_counter()
             velocities, motion, notices = self._velocities(acq, pw, grid, dets)
             if self._level is not None and gammas and not NullPower.uniform(pw.freqs) and "bins" not in self._noticed:
@@ -439,6 +421,33 @@ class Pipeline:
             notices,
             tv,
         )
+
+    def _numerics(
+        self,
+        acq: Acquisition,
+        pw: PlaneWaveData,
+        fps: Mapping[str, Fingerprint],
+        band: tuple[float, float],
+        truths: Any,
+        want_image: bool,
+        track: bool = True,
+    ) -> tuple[dict[str, np.ndarray], np.ndarray | None, dict[str, NullModel], list, list | None, float]:
+        """One frame's γ-maps, confocal image (None unless ``want_image``), null models, detections and tracks
+        (`_second_stage`), and the time the maps and the image were done (perf_counter)."""
+        imager = self._imager
+        assert imager is not None
+        if self.cfg.single_scattering_null:  # eq. (B2) needs the image first: no overlap
+            gammas = {n: imager.gamma(pw, fp) for n, fp in fps.items()}
+            image = imager.confocal(pw)
+            nulls, dets, tracks = self._second_stage(acq, pw, fps, band, truths, False, image, track)(gammas)()
+            return gammas, image if want_image else None, nulls, dets, tracks, time.perf_counter()
+        stage = self._second_stage(acq, pw, fps, band, truths, True, track=track)
+        gammas = {n: imager.gamma(pw, fp) for n, fp in fps.items()}
+        result = stage(gammas)
+        image = imager.confocal(pw) if want_image else None
+        t_done = time.perf_counter()
+        nulls, dets, tracks = result()
+        return gammas, image, nulls, dets, tracks, t_done
 
     def _second_stage(
         self,

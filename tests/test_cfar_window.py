@@ -200,3 +200,20 @@ def test_threshold_inverts_the_pfa_and_sets_where_gamma_ranks() -> None:
         assert abs(np.log(nm.pfa(s)) - np.log(p)) < 1e-6, (p, s, nm.pfa(s))
     assert nm.decided(1e-3) == SURE_SIGNIFICANCE and nm.decided(None) == SURE_SIGNIFICANCE
     assert nm.decided(1e-15) == nm.threshold(1e-15) > SURE_SIGNIFICANCE
+
+
+def test_depth_median_is_numpys_nanmedian_of_the_visible_nodes() -> None:
+    """The CFAR's per-depth median by one sort equals nanmedian over the visible nodes (NaN ignored; 1 for a
+    depth with none visible), odd and even counts alike."""
+    from fpcore.cfar import depth_median
+
+    rng = np.random.default_rng(11)
+    for shape in [(76, 76, 143), (5, 7), (40, 61)]:
+        g2 = rng.exponential(size=shape)
+        vis = rng.random(shape) > 0.3
+        vis[..., 0] = False
+        g2[..., 1][rng.random(shape[:-1]) > 0.8] = np.nan
+        flat = np.where(vis, g2, np.nan).reshape(-1, shape[-1])
+        with np.errstate(all="ignore"):
+            ref = np.nanmedian(np.where(np.isnan(flat).all(axis=0, keepdims=True), 1.0, flat), axis=0)
+        assert np.array_equal(depth_median(g2, vis), ref)
