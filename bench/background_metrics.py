@@ -182,6 +182,8 @@ def cbs_enhancement(
     P, E_in(a) = mean over those b of P/E_out. The cone profile is the mean of P/(E_out E_in) in bins of
     |q| = |b + a| (bin_width, default the b step), normalised by its mean outside the cone; the
     enhancement is its value at q = 0 (pairs b = −a exactly; about 2 for reciprocal multiple scattering).
+    `enhancement_ladder` divides it instead by the ladder extrapolated to q = 0 from a Gaussian fit of the
+    profile over q_out < q < 3 q_out: the cone's height where the envelope is not separable (`flatness`).
 
     `flatness`: the rms deviation of the profile from 1 outside the cone (|q| > q_out); well above ~0.1 the
     envelope is not separable (e.g. a small array seeing the medium in its far field, where the intensity
@@ -239,7 +241,19 @@ def cbs_enhancement(
     rec = float(abs(num) / den) if exact and den > 0 else float("nan")
     qc = np.array(centres)
     flat = float(np.std(prof[qc > q_out])) if np.any(qc > q_out) else float("nan")
-    return {"enhancement": peak, "q": qc, "profile": prof, "reciprocity": rec, "flatness": flat}
+    # Over a ladder that depends on q (a small array, which sees the halo's lateral profile through b + a):
+    # ln(profile) fitted linearly in q² over q_out < q < 3 q_out (a Gaussian ladder), extrapolated to q = 0.
+    fit = (qc > q_out) & (qc < 3 * q_out) & (prof > 0)
+    ladder0 = float(np.exp(np.polyfit(qc[fit] ** 2, np.log(prof[fit]), 1)[1])) if fit.sum() >= 3 else float("nan")
+    return {
+        "enhancement": peak,
+        "enhancement_ladder": peak / ladder0,
+        "ladder0": ladder0,
+        "q": qc,
+        "profile": prof,
+        "reciprocity": rec,
+        "flatness": flat,
+    }
 
 
 def confocal_background(

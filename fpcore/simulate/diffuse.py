@@ -47,7 +47,7 @@ from .waves import Band, TimeWindow
 if TYPE_CHECKING:
     from .medium import ScatteringLayer
 
-__all__ = ["DiffuseBackground", "aligned_spacing", "reciprocal_pairs"]
+__all__ = ["DiffuseBackground", "HaloGeometry", "aligned_spacing", "project_plane_waves", "reciprocal_pairs"]
 
 #: At most this many sub-bands for a dispersive medium: enough that ℓ_s changes by ≤ 25 % between neighbours.
 N_SUB_BANDS = 8
@@ -82,6 +82,99 @@ def reciprocal_pairs(s_out: np.ndarray, sines: np.ndarray, tol: float = 1e-7) ->
     return np.where(ok, po, -1), np.where(ok, pt, -1)
 
 
+def a_g2(aperture_radius: float) -> float:
+    """a_g² = 2a²/3: the Gaussian e^{−x²/a_g²} with the variance a²/3 of a uniform aperture |x| < a."""
+    return 2.0 * aperture_radius**2 / 3.0
+
+
+class HaloGeometry:
+    """Where and when each upgoing plane wave s_o sees the diffuse halo of transmit s_θ (angular="halo").
+
+    Per lateral axis the aperture (half-width a) is the Gaussian e^{−x²/a_g²} of the same variance, a_g² =
+    2a²/3, with the flux factor F = 2a/(√π a_g). Transmit θ lands centred on ρ_θ = z_s s_θ/c_θ; the halo it
+    leaves after a path s is (a_g²/b²)^{1/2} e^{−|ρ − ρ_θ|²/b²} per axis, b² = a_g² + 4D's. Output s_o sees,
+    through the aperture, the surface around ρ_o = −z_s s_o/c_o (its ray through the array's centre), so
+    its share of the halo is F (a_g²/w²)^{1/2} e^{−|ρ_o − ρ_θ|²/w²} per axis, w² = a_g² + b². Exit and entry
+    points are centred on ρ_m = (1 − u) ρ_θ + u ρ_o and ρ'_m = u ρ_θ + (1 − u) ρ_o, u = b²/w², and the wave
+    arrives at t = [z_s (c_θ + c_o) + s_θ·ρ'_m − s_o·ρ_m]/c0 + τ: the specular delay 2 z_s c at u = ½ and
+    the rays' z_s (1/c_θ + 1/c_o) once the halo outgrows the aperture (u → 1); exact retro-reflection keeps
+    2 z_s/c throughout. The received intensity is the Lambertian radiance M/π (2D: M/2) over the solid angle
+    d²s/c_o of each direction, and the incident flux density is c_θ per unit intensity. Every factor is
+    symmetric under (o, θ) ↔ (−θ, −o), so reciprocity (`reciprocal_pairs`) holds (docs/design.md §6.3).
+    Coherent backscattering between beams: the reversed path's phase k q·(ρ₁ − ρ₂), q = s_o + s_θ, is
+    averaged over endpoint separations weighted by the diffusion kernel e^{−Δ²/(4D's)} and by both beams'
+    footprints e^{−Δ²/a_g²}, so the cone is e^{−k²q² D's a_g²/(a_g² + 4D's)}: the plane waves' e^{−k²q²D's}
+    while the halo is narrower than the aperture, the beams' width ~2/(k a_g) once it is wider.
+    """
+
+    def __init__(
+        self, layer: ScatteringLayer, s_out: np.ndarray, sines: np.ndarray, aperture_radius: float, dim: int, c0: float
+    ) -> None:
+        self.dim, self.c0, self.z_s = dim, c0, layer.z_surface
+        self.v = c0 if layer.energy_velocity is None else layer.energy_velocity
+        self.a_g2 = a_g2(aperture_radius)
+        self.flux = (2.0 * aperture_radius / np.sqrt(np.pi * self.a_g2)) ** (dim - 1)
+        so, si = np.asarray(s_out, float), np.asarray(sines, float)
+        c_o, c_i = cosines(so), cosines(si)
+        rho_o = -self.z_s * so / c_o[:, None]
+        rho_i = self.z_s * si / c_i[:, None]
+        self.sep2 = np.sum((rho_o[:, None, :] - rho_i[None, :, :]) ** 2, axis=2)  # |ρ_o − ρ_θ|², (N_o, N_θ)
+        self.rho_o, self.rho_i = rho_o, rho_i
+        # A medium of finite width: absorbing walls at ±X, X = width/2 + z_e, per lateral axis (side_losses).
+        self.wall = 0.5 * layer.width + layer.diffusion_constants(dim)[1] if np.isfinite(layer.width) else None
+        self.c_o, self.c_i = c_o, c_i
+        # t − τ = (A − C) + u (B + C), B + C ≥ 0 (module doc): the specular part and the rays' extra path.
+        a = self.z_s * (c_i[None, :] + c_o[:, None])
+        b = self.z_s * ((si**2).sum(1)[None, :] / c_i[None, :] + (so**2).sum(1)[:, None] / c_o[:, None])
+        c = self.z_s * (so @ si.T) * (1.0 / c_o[:, None] + 1.0 / c_i[None, :])
+        self.t_spec = ((a - c) / c0).astype(np.float32)
+        self.t_rays = np.maximum((b + c) / c0, 0.0).astype(np.float32)
+
+    def spread(self, tau: np.ndarray, ls: float) -> np.ndarray:
+        """4D's for the age τ (D' = ℓ_s/d)."""
+        return (4.0 * ls / self.dim * self.v) * np.maximum(tau, 0.0)
+
+    def age(self, t: np.ndarray, ls: float, iterations: int = 8) -> np.ndarray:
+        """τ (N_o, N_θ, N_t) float32 with t = t_spec + u(τ) t_rays + τ, by Newton from the left (the map is
+        increasing and concave in τ, so the iterates rise monotonically to the root); τ ≤ 0 before the wave."""
+        target = np.asarray(t, np.float32)[None, None, :] - self.t_spec[:, :, None]
+        g = self.t_rays[:, :, None]
+        tau = target - g
+        k = np.float32(4.0 * ls / self.dim * self.v)
+        a2 = np.float32(self.a_g2)
+        for _ in range(iterations):
+            beta = k * np.maximum(tau, 0.0)
+            den = 2 * a2 + beta
+            u = (a2 + beta) / den
+            du = np.where(tau > 0, k * a2 / den**2, 0.0)
+            tau = tau - (tau + g * u - target) / (1.0 + g * du)
+        return tau.astype(np.float32)
+
+    def share(self, tau: np.ndarray, ls: float, spacing: float, cbs: bool) -> np.ndarray:
+        """The intensity factor of each (o, θ, τ) for the noise's envelope, weights (`weights`) divided out:
+        F (a_g²/w²)^{(d−1)/2} e^{−|ρ_o − ρ_θ|²/w²} × c_θ × Δs^{d−1}/(N_Ω c_o), with N_Ω = π (3D) or 2 (2D) and
+        Δs^{d−1} the directions' cell, times c_o² where the weights carry the Weyl factor 1/c_o (cbs)."""
+        w2 = 2 * np.float32(self.a_g2) + self.spread(tau, ls).astype(np.float32)
+        n_omega = np.pi if self.dim == 3 else 2.0
+        per_dir = self.c_i[None, :] * spacing / n_omega * (self.c_o[:, None] if cbs else 1.0 / self.c_o[:, None])
+        if self.wall is None:
+            out = np.exp(-self.sep2.astype(np.float32)[:, :, None] / w2)
+        else:  # per axis, the image series Σ_n (−1)ⁿ e^{−(x_o − x_n)²/w²}, x_n = 2nX + (−1)ⁿ x_θ (Carslaw & Jaeger)
+            x_wall = self.wall
+            m = int(np.ceil(3 * float(np.sqrt(w2.max())) / (2 * x_wall))) + 1
+            out = np.ones_like(w2)
+            for d in range(self.dim - 1):
+                axis = np.zeros_like(w2)
+                for n in range(-m, m + 1):
+                    x_n = 2 * n * x_wall + (-1) ** abs(n) * self.rho_i[:, d]
+                    gap = (self.rho_o[:, None, d] - x_n[None, :]).astype(np.float32)
+                    axis += np.float32((-1) ** abs(n)) * np.exp(-(gap**2)[:, :, None] / w2)
+                out *= np.maximum(axis, 0.0)
+        out *= (np.float32(self.a_g2) / w2) ** np.float32(0.5 * (self.dim - 1))
+        out *= (self.flux * per_dir).astype(np.float32)[:, :, None]
+        return out
+
+
 class DiffuseBackground:
     """Frame generator of the multiple-scattering spectrum V(f, u, θ) (dimensionless, like a target's H)."""
 
@@ -111,8 +204,15 @@ class DiffuseBackground:
         v = c0 if layer.energy_velocity is None else layer.energy_velocity
         # Angular spread of the halo seen from the array at the middle of the window.
         mid = window.t0 + 0.5 * window.duration - 2 * layer.z_surface / c0
-        b = float(np.sqrt(layer.halo_radius2(np.array(max(mid, 0.0) * v), aperture_radius, dim)))
-        self.s_d = b / np.hypot(b, layer.z_surface)
+        halo = layer.angular == "halo"
+        if halo:  # out to 1.5 w beyond the farthest transmit's landing, at the window's middle (HaloGeometry)
+            end = window.t0 + 0.5 * window.duration - 2 * layer.z_surface / c0
+            w2 = 2 * a_g2(aperture_radius) + 4 * float(layer.ls_at(band.centre)) / dim * v * max(end, 0.0)
+            r = float(np.max(np.linalg.norm(layer.z_surface * s / cosines(s)[:, None], axis=1))) + 1.5 * np.sqrt(w2)
+            self.s_d = r / np.hypot(r, layer.z_surface)
+        else:
+            b = float(np.sqrt(layer.halo_radius2(np.array(max(mid, 0.0) * v), aperture_radius, dim)))
+            self.s_d = b / np.hypot(b, layer.z_surface)
         # Direction grid: spatial period λ_min/Δs ≥ 1.2 × the array extent; aligned with the transmits'
         # lattice when reciprocity is asked for (module doc).
         span = np.ptp(el[:, :2], axis=0) + 1e-12
@@ -136,17 +236,22 @@ class DiffuseBackground:
         self.s_out = so[keep]
         self._axes = axes
         self._keep = keep
-        self._grid = element_grid_axes(el) if dim == 3 else None
         x = np.clip((smag[keep] / self.s_d - 0.85) / 0.3, 0.0, 1.0)
         c_o = cosines(self.s_out)
         # Taper × the plane-wave (Weyl) weight 1/c_o of a point source's spectrum, so that a reciprocal noise
         # pair gives R(b, a) W_a = R(−a, −b) W_b: a symmetric matrix in the element basis (module doc).
         w = (0.5 + 0.5 * np.cos(np.pi * x)) / (c_o if layer.cbs else 1.0)
-        self.weights = (w / np.sqrt(np.sum(w**2))).astype(np.float32)
+        norm2 = float(np.sum(w**2))
+        self.weights = (w / np.sqrt(norm2)).astype(np.float32)
         self.n_o = self.s_out.shape[0]
         t = window.t0 + np.arange(self.n_bb) * self.dt
-        t_on = layer.z_surface * (cosines(s)[None, :] + c_o[:, None]) / c0  # (N_o, N_θ)
-        tau = (t[None, None, :] - t_on[:, :, None]).astype(np.float32)
+        geo = HaloGeometry(layer, self.s_out, s, aperture_radius, dim, c0) if halo else None
+        if geo is not None:
+            tau = geo.age(t, float(layer.ls_at(band.centre)))
+        else:
+            t_on = layer.z_surface * (cosines(s)[None, :] + c_o[:, None]) / c0  # (N_o, N_θ)
+            tau = (t[None, None, :] - t_on[:, :, None]).astype(np.float32)
+        cell = float(np.prod(spacings))  # Δs^{d−1}, the sine area of one direction
         # Sub-bands (one for a non-dispersive medium) and their triangular blending weights in f.
         ls_span = layer.ls_at(np.array([self.freqs[0], self.freqs[-1]]))
         n_sub = 1 + int(np.ceil(np.log(float(ls_span.max() / ls_span.min())) / np.log(1.25) - 1e-9))
@@ -161,12 +266,20 @@ class DiffuseBackground:
             lay = layer.at_frequency(float(fc))
             # ⟨M²⟩ per unit pulse energy: unit-density white noise shaped by this envelope and filtered by
             # S(f) has variance envelope² · E_s = ⟨M²⟩. Tabulated in τ, then interpolated.
-            rate = lay.intensity(tab, c0, aperture_radius, dim, pulse_energy=1.0, orders_from=orders_from)
+            if geo is None:
+                rate = lay.intensity(tab, c0, aperture_radius, dim, pulse_energy=1.0, orders_from=orders_from)
+            else:
+                rate = lay.exitance(tab, c0, aperture_radius, dim, orders_from=orders_from)
             env = np.interp(tau, tab, np.sqrt(np.maximum(rate, 0.0)), left=0.0).astype(np.float32)
+            if geo is not None:  # each direction's share of the halo, the weights' normalisation divided out
+                env *= np.sqrt(geo.share(tau, lay.ls, cell, layer.cbs) * np.float32(norm2))
             if layer.cbs:
                 kc = 2 * np.pi * fc / c0
                 path = v * np.maximum(tau, 0.0)
-                cone = np.exp(-(kc**2) * sep2[:, :, None] * (lay.ls / dim) * path)
+                dps = (lay.ls / dim) * path  # D's
+                if geo is not None:  # beams of the aperture bound the endpoints' separation (HaloGeometry)
+                    dps = dps * np.float32(geo.a_g2) / (np.float32(geo.a_g2) + 4 * dps)
+                cone = np.exp(-(kc**2) * sep2[:, :, None] * dps)
                 env *= np.sqrt(1.0 + cone).astype(np.float32)
             self.envelopes.append(env)
         self.envelope = self.envelopes[len(self.envelopes) // 2]  # the band-centre one (tests, diagnostics)
@@ -192,14 +305,11 @@ class DiffuseBackground:
             # Deep enough that the echo at the band's lower −6 dB edge has fallen by e^{−12} in intensity.
             depth_max = max(min(0.5 * c0 * t_end - layer.z_surface, 6.0 * float(layer.l_ext_at(band.f_min))), 1e-3)
             ss_rng = np.random.default_rng(rng.integers(2**63))
-            sub = [np.flatnonzero(np.argmax(self.blend, axis=0) == j) for j in range(n_sub)]
             self.single = SingleScatteringField(
                 layer,
-                self.s_out,
-                float(np.prod(spacings)) ** (1.0 / len(spacings)),
                 s,
                 self.freqs,
-                sub,
+                self.blend,
                 self.centres,
                 c0,
                 dim,
@@ -223,35 +333,8 @@ class DiffuseBackground:
         return out
 
     def _project(self, aw: np.ndarray) -> np.ndarray:
-        """M(f, u, θ) = Σ_o aw(o, θ, f) e^{−ik s_o·u} for weighted amplitudes aw (N_o, N_θ, N_f).
-
-        Separable (x then y) for a regular matrix array, by frequency recursion otherwise.
-        """
-        k = 2 * np.pi * self.freqs / self.c0
-        n_f = self.freqs.size
-        if self._grid is not None:
-            ux, uy = self._grid
-            sx, sy = self._axes
-            full = np.zeros((sx.size * sy.size, self.n_i, n_f), dtype=np.complex64)
-            full[self._keep] = aw
-            full = full.reshape(sx.size, sy.size, self.n_i, n_f)
-            px = np.exp(-1j * k[:, None, None] * ux[None, :, None] * sx[None, None, :]).astype(np.complex64)
-            py = np.exp(-1j * k[:, None, None] * uy[None, :, None] * sy[None, None, :]).astype(np.complex64)
-            g = np.transpose(full, (3, 1, 0, 2))  # (f, sy, sx, θ)
-            g = np.matmul(px[:, None], g)  # (f, sy, ux, θ)
-            g = np.matmul(py, g.reshape(n_f, sy.size, -1))  # (f, uy, ux·θ)
-            return np.ascontiguousarray(g.reshape(n_f, self.n_u, self.n_i), dtype=np.complex64)
-        out = np.empty((n_f, self.n_u, self.n_i), dtype=np.complex64)
-        phase_u = self.elements[:, :2] @ self.s_out.T  # (N_u, N_o)
-        dk = np.diff(k).mean() if n_f > 1 else 0.0
-        step = np.exp(-1j * dk * phase_u).astype(np.complex64)
-        p = None
-        for m in range(n_f):
-            if p is None or m % 32 == 0:
-                p = np.exp(-1j * k[m] * phase_u).astype(np.complex64)
-            out[m] = p @ aw[:, :, m]
-            p *= step
-        return out
+        """M(f, u, θ) = Σ_o aw(o, θ, f) e^{−ik s_o·u} on the multiple-scattering grid."""
+        return project_plane_waves(aw, self.freqs, self.c0, self.elements, self.s_out, self._axes, self._keep)
 
     def multiple_spectrum(self) -> np.ndarray:
         """A_MS(o, θ, f) of the current noise state: envelope-shaped, Fourier-transformed, sub-bands blended."""
@@ -278,14 +361,57 @@ class DiffuseBackground:
             xi *= np.sqrt(np.maximum(np.float32(0), np.float32(1) - self.g1 * self.g1))
             self.state *= self.g1
             self.state += xi
-        aw = self.multiple_spectrum() * self.weights[:, None, None]
-        if self.single is not None:
+        out = self._project(self.multiple_spectrum() * self.weights[:, None, None])
+        if self.single is not None:  # on its own, finer grid (single_scattering.output_grid)
             self.single.advance()
-            aw += self.single.spectrum()
-        out = self._project(aw)
+            ss = self.single
+            out += project_plane_waves(ss.spectrum(), self.freqs, self.c0, self.elements, ss.s_out, ss.axes, ss.keep)
         if self.g1 is None:
             self._frozen, self.state = out, None
         return out
+
+
+def project_plane_waves(
+    aw: np.ndarray,
+    freqs: np.ndarray,
+    c0: float,
+    elements: np.ndarray,
+    s_out: np.ndarray,
+    axes: list[np.ndarray] | None = None,
+    keep: np.ndarray | None = None,
+) -> np.ndarray:
+    """M(f, u, θ) = Σ_o aw(o, θ, f) e^{−ik s_o·u} for weighted amplitudes aw (N_o, N_θ, N_f), complex64.
+
+    Separable (x then y) for a regular matrix array and an output grid given by its `axes` and `keep` mask
+    (x-major), by frequency recursion otherwise.
+    """
+    k = 2 * np.pi * np.asarray(freqs, dtype=np.float64) / c0
+    n_f, n_i = k.size, aw.shape[1]
+    el = np.asarray(elements, dtype=np.float64)
+    grid = element_grid_axes(el) if axes is not None and len(axes) == 2 else None
+    if grid is not None and axes is not None and keep is not None:
+        ux, uy = grid
+        sx, sy = axes
+        flat = np.zeros((sx.size * sy.size, n_i, n_f), dtype=np.complex64)
+        flat[keep] = aw
+        full = flat.reshape(sx.size, sy.size, n_i, n_f)
+        px = np.exp(-1j * k[:, None, None] * ux[None, :, None] * sx[None, None, :]).astype(np.complex64)
+        py = np.exp(-1j * k[:, None, None] * uy[None, :, None] * sy[None, None, :]).astype(np.complex64)
+        g = np.transpose(full, (3, 1, 0, 2))  # (f, sy, sx, θ)
+        g = np.matmul(px[:, None], g)  # (f, sy, ux, θ)
+        g = np.matmul(py, g.reshape(n_f, sy.size, -1))  # (f, uy, ux·θ)
+        return np.ascontiguousarray(g.reshape(n_f, el.shape[0], n_i), dtype=np.complex64)
+    out = np.empty((n_f, el.shape[0], n_i), dtype=np.complex64)
+    phase_u = el[:, :2] @ np.asarray(s_out, dtype=np.float64).T  # (N_u, N_o)
+    dk = np.diff(k).mean() if n_f > 1 else 0.0
+    step = np.exp(-1j * dk * phase_u).astype(np.complex64)
+    p = None
+    for m in range(n_f):
+        if p is None or m % 32 == 0:
+            p = np.exp(-1j * k[m] * phase_u).astype(np.complex64)
+        out[m] = p @ aw[:, :, m]
+        p *= step
+    return out
 
 
 def _triangles(freqs: np.ndarray, centres: np.ndarray) -> np.ndarray:

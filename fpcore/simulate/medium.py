@@ -62,6 +62,14 @@ from ..geometry import cosines
 __all__ = ["ScatteringLayer", "DiffuseBackground"]
 
 
+def first_order_reflectance(s: np.ndarray, ls: float, dim: int) -> np.ndarray:
+    """ρ₁(s) = κ_d e^{−s/ℓ_s}/ℓ_s: the single-scattering flux per unit path of a normally incident plane wave
+    on a lossless half-space of isotropic scatterers (`ScatteringLayer.reflectance_density`); its integral
+    κ₃ = (1 − ln 2)/2 (3D), κ₂ = (π − 2)/(2π) (2D) is the first order's share of the reflected flux."""
+    kappa = (1.0 - np.log(2.0)) / 2.0 if dim == 3 else (np.pi - 2.0) / (2.0 * np.pi)
+    return kappa * np.exp(-np.asarray(s, dtype=np.float64) / ls) / ls
+
+
 @dataclass(frozen=True)
 class ScatteringLayer:
     """Half-space z > z_surface of a scattering medium under water (the array at z = 0).
@@ -75,7 +83,9 @@ class ScatteringLayer:
     order as a focused speckle, `single_scattering`); cbs: reciprocity and coherent backscattering;
     thickness: the medium's thickness below the surface (m; inf: a half-space), which bounds the diffusion
     envelope (`reflectance_density`); width: its lateral extent (m; |x|, |y| ≤ width/2 about the array's
-    axis; inf: unbounded), whose sides let the diffuse halo out (`side_losses`).
+    axis; inf: unbounded), whose sides let the diffuse halo out (`side_losses`); angular: "uniform" (every
+    output direction carries the same envelope, timed at the array's centre) or "halo" (each direction sees
+    the halo where its ray through the array meets the surface, at that ray's delay: `diffuse` module doc).
     """
 
     z_surface: float
@@ -96,8 +106,11 @@ class ScatteringLayer:
     cbs: bool = False
     thickness: float = np.inf
     width: float = np.inf
+    angular: str = "uniform"
 
     def __post_init__(self) -> None:
+        if self.angular not in ("uniform", "halo"):
+            raise ValueError(f"angular: expected 'uniform' or 'halo', got {self.angular!r}")
         if self.single_scattering not in ("envelope", "field"):
             raise ValueError(f"single_scattering: expected 'envelope' or 'field', got {self.single_scattering!r}")
         if self.ls_exponent != 0.0 and not self.f_ref > 0:
@@ -214,8 +227,11 @@ class ScatteringLayer:
 
     def reflectance_density(self, s: np.ndarray, orders_from: int = 1, dim: int = 3) -> np.ndarray:
         """ρ(s) per unit path length (1/m) of the multiply scattered flux (module doc); orders_from=2
-        drops the single-scattering order (escape: its n = 1 term e^{−s/ℓ_s}/(2ℓ_s); diffusion: the
-        approximation has no separate first order and is kept whole). Diffusion in `dim` dimensions: the
+        drops the single-scattering order (escape: its n = 1 term e^{−s/ℓ_s}/(2ℓ_s); diffusion: the exact
+        first order of a normally incident plane wave on isotropic scatterers, ρ₁(s) = κ_d e^{−s/ℓ_s}/ℓ_s —
+        every single-scattering path from depth z out at direction cosine μ has s = z(1 + 1/μ), so the
+        extinction is e^{−s/ℓ_s} whatever μ, and κ₃ = ∫₀¹ (dμ/2) μ/(1 + μ) = (1 − ln 2)/2, κ₂ = (π − 2)/(2π) —
+        is subtracted and the rest clipped at 0, `first_order_reflectance`). Diffusion in `dim` dimensions: the
         flux through the extrapolated boundary of a source at z₁ = ℓ_s + z_e; for a slab (finite
         `thickness` L) the images of both extrapolated boundaries, 2m(L + 2z_e) apart (Patterson, Chance &
         Wilson 1989; Contini, Martelli & Zaccanti 1997):
@@ -240,7 +256,10 @@ class ScatteringLayer:
             for m in orders:
                 zm = z1 + 2 * m * span if m else z1
                 rho = rho + zm / np.sqrt(4 * np.pi * dp * s**3) * np.exp(-(zm**2) / (4 * dp * s))
-        return np.where(s > 0, np.nan_to_num(rho), 0.0) * absorb
+        rho = np.where(s > 0, np.nan_to_num(rho), 0.0)
+        if orders_from >= 2:
+            rho = np.maximum(rho - first_order_reflectance(s, ls, dim), 0.0)
+        return rho * absorb
 
     def halo_radius2(self, s: np.ndarray, aperture_radius: float, dim: int = 3) -> np.ndarray:
         """b² = a² + 4D's: the diffuse halo's squared radius after a path s (module doc)."""
@@ -290,6 +309,18 @@ class ScatteringLayer:
         rho = self.reflectance_density(s, orders_from, dim)
         lateral = lateral * self.side_losses(b2, aperture_radius, dim)
         out = self.gain * reception * rho * v * pulse_energy * lateral * t_r**2
+        return np.where(np.asarray(tau) > 0, out, 0.0)
+
+    def exitance(
+        self, tau: np.ndarray, c0: float, aperture_radius: float, dim: int, orders_from: int = 1
+    ) -> np.ndarray:
+        """M(τ)/E_s: the diffuse flux density leaving the surface per unit path, v ρ(s) (1 − R²)² × gain, for an
+        infinitely wide insonification (the aperture's share, the reception and a finite width's walls are
+        the `halo` geometry's, `diffuse.HaloGeometry`)."""
+        v = c0 if self.energy_velocity is None else self.energy_velocity
+        s = v * np.maximum(np.asarray(tau, dtype=np.float64), 0.0)
+        t_r = 1.0 - self.reflection() ** 2
+        out = self.gain * self.reflectance_density(s, orders_from, dim) * v * t_r**2
         return np.where(np.asarray(tau) > 0, out, 0.0)
 
     def correlation_per_frame(self, tau: np.ndarray, c0: float, f_c: float) -> np.ndarray:

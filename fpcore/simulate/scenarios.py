@@ -144,6 +144,9 @@ def _granular_suspension(conventions: str = "paper", **overrides: Any) -> Scatte
             # calibrated on it (docs/design.md §4.9). single_scattering="envelope" keeps the earlier background.
             single_scattering="field",
             cbs=True,
+            # Each output direction sees the halo where its ray meets the surface, at that ray's delay (validated
+            # against Foldy–Lax in 2-D and 3-D, bench/validate_background.py); angular="uniform" keeps the earlier.
+            angular="halo",
         )
     else:
         params.update(attenuation_depth="front")

@@ -11,13 +11,15 @@ the coherent (extinguished) medium, transmit θ (sine a, cosine c_a) and an upgo
 
 with d_m = z_m − z_s the depth below the surface, e^{−d/ℓ_ext(f)} the extinction of both legs at
 normal incidence (obliquity neglected: the legs' factors 1/c_a, 1/c_b ≤ 1.15 within ±0.5 of the axis),
-w(x) the lateral extent of a transmitted beam (the aperture and its diffraction spread, a smooth edge)
+w(x − z tan θ) the lateral extent of the transmitted beam, steered with it (the aperture and its
+diffraction spread, a smooth edge)
 and W_b the plane-wave (Weyl) weight of the Green function on the output grid of spacing Δs:
 e^{−ikR}/(4πR) = (−ik/8π²) ∫ d²b e^{−ik(b·x + c_b|z|)}/c_b, so W_b = −ik Δs²/(8π² c_b) (3D), and
 (−i/4)H₀⁽²⁾(kR) = (−i/4π) ∫ db e^{−ik(b x + c_b|z|)}/c_b, W_b = −iΔs/(4π c_b) (2D). The
 reflectivity is sampled on a grid that resolves the band's spatial frequencies (lateral k|a − b|,
 axial k(c_a + c_b) demodulated about its centre), and the sum is one type-2 NUFFT per sub-band of
-frequencies (each sub-band has its own ℓ_s(f), so the echo is filtered by exp(−2z/ℓ_ext(f))).
+frequencies and transmit (each sub-band has its own ℓ_s(f), so the echo is filtered by exp(−2z/ℓ_ext(f));
+each transmit has its own beam).
 
 Frames: the beads move by ⟨Δr²⟩^{1/2} between frames; a single-scattering echo (wavevector transfer
 ≈ 2k) keeps the correlation g₁ = exp(−(2k)²⟨Δr²⟩/6) (3D Brownian displacement), applied as an AR(1)
@@ -42,20 +44,19 @@ __all__ = ["SingleScatteringField"]
 class SingleScatteringField:
     """The beads' single-scattering spectrum A(o, θ, f) on an output plane-wave grid (module doc).
 
-    layer: the `ScatteringLayer`; s_out (N_o, 2) output sines on a grid of spacing `ds`; sines (N_θ, 2)
-    transmits; freqs (N_f,) Hz; sub_bands: list of index arrays into freqs, each with its centre
-    frequency in `centres`; aperture (lateral extents of the array, m) and the deepest depth below the
-    surface worth simulating `depth_max` (m).
+    layer: the `ScatteringLayer`; sines (N_θ, 2) transmits; freqs (N_f,) Hz; blend (n_sub, N_f): each
+    sub-band's weight per frequency (summing to 1; triangular between the sub-band centres `centres`, so the
+    spectrum has no step between sub-bands); aperture (lateral extents of the array, m) and the deepest depth
+    below the surface worth simulating `depth_max` (m). The output grid (`s_out`, spacing `ds`, `axes` and
+    `keep` over the full square grid, x-major) is the field's own, alias-free (`output_grid`), unless given.
     """
 
     def __init__(
         self,
         layer: ScatteringLayer,
-        s_out: np.ndarray,
-        ds: float,
         sines: np.ndarray,
         freqs: np.ndarray,
-        sub_bands: list[np.ndarray],
+        blend: np.ndarray,
         centres: np.ndarray,
         c0: float,
         dim: int,
@@ -63,14 +64,39 @@ class SingleScatteringField:
         depth_max: float,
         rng: np.random.Generator,
         rho0: float = 1000.0,
+        s_out: np.ndarray | None = None,
+        ds: float | None = None,
     ) -> None:
-        self.layer, self.c0, self.dim, self.rng, self.ds = layer, c0, dim, rng, ds
+        self.layer, self.c0, self.dim, self.rng = layer, c0, dim, rng
         self.freqs = np.asarray(freqs, dtype=np.float64)
-        self.sub_bands, self.centres = sub_bands, np.asarray(centres, dtype=np.float64)
-        so = np.asarray(s_out, dtype=np.float64)
+        self.blend, self.centres = np.asarray(blend, dtype=np.float64), np.asarray(centres, dtype=np.float64)
+        if self.blend.shape != (self.centres.size, self.freqs.size):
+            raise ValueError(f"blend: expected shape {(self.centres.size, self.freqs.size)}, got {self.blend.shape}")
         si = np.asarray(sines, dtype=np.float64)
+        z_s = layer.z_surface
+        # Lateral extent of one transmitted beam: the aperture D plus its diffraction spread λ z/D at the deepest
+        # depth, steered: transmit θ's beam is centred on z tan θ at depth z (a finite-aperture plane wave).
+        lam = c0 / float(np.mean(self.freqs))
+        z_far = z_s + depth_max
+        half = [0.5 * aperture[d] + 0.5 * lam * z_far / max(aperture[d], lam) for d in range(2)]
+        ci = cosines(si)
+        self._tan = si / ci[:, None]  # (N_θ, 2)
+        reach = [1.15 * half[d] + z_far * float(np.abs(self._tan[:, d]).max(initial=0.0)) for d in range(2)]
+        self._half = half
+        self.axes: list[np.ndarray] | None = None
+        self.keep: np.ndarray | None = None
+        if s_out is None:
+            lam_min = c0 / float(self.freqs.max())
+            ds, self.axes, self.keep, s_out, taper = output_grid(reach, aperture, z_s, lam_min, dim)
+        else:
+            taper = np.ones(np.asarray(s_out).shape[0])
+        self.taper = taper
+        assert ds is not None
+        self.ds = ds
+        so = np.asarray(s_out, dtype=np.float64)
+        self.s_out = so
         self.n_o, self.n_i = so.shape[0], si.shape[0]
-        co, ci = cosines(so), cosines(si)
+        co = cosines(so)
         # Spatial frequencies per (o, θ) in units of k: lateral a − b, axial c_a + c_b.
         self._qx = si[None, :, 0] - so[:, None, 0]
         self._qy = si[None, :, 1] - so[:, None, 1]
@@ -83,24 +109,14 @@ class SingleScatteringField:
         hz = np.pi / (1.02 * max(0.5 * (qz_hi - qz_lo), 1e-9))
         qx_max = k_max * max(float(np.abs(self._qx).max()), 1e-6)
         hx = np.pi / (1.02 * qx_max)
-        z_s = layer.z_surface
         self.nz = max(4, int(np.ceil(depth_max / hz)) + 1)
         self.hz = hz
         self.depths = np.arange(self.nz) * hz
-        # Lateral extent of one transmitted beam: the aperture D plus its diffraction spread λ z/D at the deepest
-        # depth (a steered transmit shifts its beam by s·z without widening it; the shift is neglected).
-        lam = c0 / float(np.mean(self.freqs))
-        z_far = z_s + depth_max
-        half = [0.5 * aperture[d] + 0.5 * lam * z_far / max(aperture[d], lam) for d in range(2)]
-        self.nx = 2 * int(np.ceil(1.15 * half[0] / hx)) + 2
-        self.ny = 2 * int(np.ceil(1.15 * half[1] / hx)) + 2 if dim == 3 else 1
+        self.nx = 2 * int(np.ceil(reach[0] / hx)) + 2
+        self.ny = 2 * int(np.ceil(reach[1] / hx)) + 2 if dim == 3 else 1
         self.hx = hx
-        xs = (np.arange(self.nx) - self.nx // 2) * hx
-        ys = (np.arange(self.ny) - self.ny // 2) * hx
-        beam = _edge(xs, half[0], 0.15 * half[0])[:, None] * (
-            _edge(ys, half[1], 0.15 * half[1])[None, :] if dim == 3 else np.ones((1, 1))
-        )
-        self._beam = beam.astype(np.float32)  # (nx, ny)
+        self._xs = (np.arange(self.nx) - self.nx // 2) * hx
+        self._ys = (np.arange(self.ny) - self.ny // 2) * hx
         cell = hx * hz * (hx if dim == 3 else 1.0)
         self._cell = cell
         t_r = 1.0 - layer.reflection(rho0, c0) ** 2
@@ -110,6 +126,17 @@ class SingleScatteringField:
         self.g1 = g
         self.state: np.ndarray | None = None
         self._plans: list[tuple] | None = None  # per sub-band, built at the first spectrum
+        self._beams: np.ndarray | None = None
+
+    def beam(self, i: int) -> np.ndarray:
+        """Transmit i's beam w(x − z tan θ) on the grid, (nx, ny, nz) float32: 1 inside, cosine edges."""
+        z = self.layer.z_surface + self.depths
+        bx = _edge(self._xs[:, None] - z[None, :] * self._tan[i, 0], self._half[0], 0.15 * self._half[0])
+        if self.dim == 3:
+            by = _edge(self._ys[:, None] - z[None, :] * self._tan[i, 1], self._half[1], 0.15 * self._half[1])
+        else:
+            by = np.ones((1, z.size))
+        return (bx[:, None, :] * by[None, :, :]).astype(np.float32)
 
     def _white(self) -> np.ndarray:
         shape = (self.nx, self.ny, self.nz)
@@ -128,7 +155,7 @@ class SingleScatteringField:
             self.state *= g
             self.state += self._white() * np.float32(np.sqrt(max(0.0, 1.0 - self.g1**2)))
 
-    def _sub_band(self, idx: np.ndarray, fc: float) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray]:
+    def _sub_band(self, idx: np.ndarray, fc: float) -> tuple[np.ndarray, list[finufft.Plan], np.ndarray]:
         """What a frame does not change, per sub-band: the depth profile, the NUFFT points and the factor
         applied after it (module doc)."""
         lay = self.layer
@@ -139,25 +166,30 @@ class SingleScatteringField:
         # carrier taken out of the NUFFT's spatial frequencies below).
         depth_w = np.exp(-self.depths / lext - 1j * self._kz0 * self.depths) * np.sqrt(strength * self._cell)
         k = 2 * np.pi * self.freqs[idx] / self.c0  # (n_f,)
-        kx = (k[None, None, :] * self._qx[:, :, None]).ravel()
-        kz = (k[None, None, :] * self._qz[:, :, None]).ravel()
+        kx = k[None, None, :] * self._qx[:, :, None]  # (N_o, N_θ, n_f)
+        kz = k[None, None, :] * self._qz[:, :, None]
         # e^{−iK·r}: r = (x, y, z_s + d); d_m = m hz (m ≥ 0) → modes centred: d = (m' + nz/2) hz with
-        # finufft's modes m' ∈ [−nz/2, nz/2); the axial frequency is demodulated by k_z0.
-        points = [(kx * self.hx).astype(np.float32)]
-        if self.dim == 3:
-            points.append((k[None, None, :] * self._qy[:, :, None]).ravel().astype(np.float32) * np.float32(self.hx))
-        points.append(((kz - self._kz0) * self.hz).astype(np.float32))
+        # finufft's modes m' ∈ [−nz/2, nz/2); the axial frequency is demodulated by k_z0. One plan per transmit
+        # (each has its own steered beam), its points set once.
+        plans = []
+        for i in range(self.n_i):
+            pts = [np.ascontiguousarray(kx[:, i] * self.hx, dtype=np.float32).ravel()]
+            if self.dim == 3:
+                pts.append(np.ascontiguousarray(k[None, :] * self._qy[:, i, None] * self.hx, dtype=np.float32).ravel())
+            pts.append(np.ascontiguousarray((kz[:, i] - self._kz0) * self.hz, dtype=np.float32).ravel())
+            modes = (self.nx, self.ny, self.nz) if self.dim == 3 else (self.nx, self.nz)
+            plan = finufft.Plan(2, modes, eps=1e-3, isign=-1, dtype="complex64", modeord=0, upsampfac=1.25)
+            plan.setpts(*pts)
+            plans.append(plan)
         # Phase of the depth origin (d = 0 at mode −nz//2) and of the surface, e^{−i k_z z_s}; Weyl weight; 1 − R².
         m0 = self.nz // 2
-        ph = np.exp(-1j * ((kz - self._kz0) * self.hz * m0 + kz * self.layer.z_surface)).reshape(
-            self.n_o, self.n_i, idx.size
-        )
+        ph = np.exp(-1j * ((kz - self._kz0) * self.hz * m0 + kz * self.layer.z_surface))
         if self.dim == 3:
             weyl = (-1j * k[None, :] * self._ds2 / (8 * np.pi**2 * self._co[:, None]))[:, None, :]
         else:
             weyl = (-1j * self._ds2 / (4 * np.pi * self._co[:, None]) * np.ones_like(k)[None, :])[:, None, :]
-        post = (ph * weyl * self._t_r).astype(np.complex64)
-        return (self._beam[:, :, None] * depth_w[None, None, :]).astype(np.complex64), tuple(points), post
+        post = (ph * weyl * self._t_r * self.taper[:, None, None]).astype(np.complex64)
+        return depth_w.astype(np.complex64), plans, post
 
     def spectrum(self) -> np.ndarray:
         """A(o, θ, f) (N_o, N_θ, N_f) complex64 for the current grid (module doc)."""
@@ -165,24 +197,64 @@ class SingleScatteringField:
             self.advance()
         assert self.state is not None
         if self._plans is None:
-            self._plans = [
-                (idx, *self._sub_band(idx, fc))
-                for idx, fc in zip(self.sub_bands, self.centres, strict=True)
-                if idx.size
-            ]
+            self._plans = []
+            for wts, fc in zip(self.blend, self.centres, strict=True):
+                idx = np.flatnonzero(wts > 0)
+                if idx.size:
+                    depth_w, plans, post = self._sub_band(idx, fc)
+                    self._plans.append((idx, depth_w, plans, post * wts[idx].astype(np.float32)[None, None, :]))
+        if self._beams is None:
+            self._beams = np.stack([self.beam(i) for i in range(self.n_i)])
         out = np.zeros((self.n_o, self.n_i, self.freqs.size), dtype=np.complex64)
-        for idx, profile, points, post in self._plans:
-            grid = np.ascontiguousarray(self.state * profile)
-            if self.dim == 3:
-                vals = finufft.nufft3d2(*points, grid, isign=-1, eps=1e-4, modeord=0)
-            else:
-                vals = finufft.nufft2d2(*points, np.ascontiguousarray(grid[:, 0, :]), isign=-1, eps=1e-4, modeord=0)
-            out[:, :, idx] = vals.reshape(self.n_o, self.n_i, idx.size) * post
+        for idx, depth_w, plans, post in self._plans:
+            base = self.state * depth_w[None, None, :]
+            for i, plan in enumerate(plans):
+                grid = base * self._beams[i]
+                vals = plan.execute(grid if self.dim == 3 else np.ascontiguousarray(grid[:, 0, :]))
+                out[:, i, idx] += vals.reshape(self.n_o, idx.size) * post[:, i]
         return out
 
     @property
     def _ds2(self) -> float:
         return self.ds**2 if self.dim == 3 else self.ds
+
+
+#: Spatial period λ/Δs of the output grid over twice the largest source–element offset (`output_grid`).
+PERIOD_MARGIN = 1.5
+#: At most this many output directions in 3D (the grid coarsens beyond, and the outermost sources alias).
+MAX_DIRECTIONS = 2500
+
+
+def output_grid(
+    reach: list[float], aperture: tuple[float, float], z_s: float, lam_min: float, dim: int
+) -> tuple[float, list[np.ndarray], np.ndarray, np.ndarray, np.ndarray]:
+    """An output plane-wave grid for sources within ±reach (m) of the axis seen by elements within
+    ±aperture/2. Its spatial period λ/Δs (the Poisson images of each source, λ-dependent and therefore
+    dispersed in time: energy before the surface echo) is PERIOD_MARGIN × twice the largest source–element
+    offset X = reach + aperture/2, and it reaches the sine of that offset's ray from the surface, s_X =
+    X/√(X² + z_s²), then tapers to 0 by s_X + 0.15 (≤ 0.95), so that the truncated Weyl sum has no endpoint
+    term. In 3D the spacing grows if MAX_DIRECTIONS would be exceeded.
+    Returns (Δs, axes, keep over the full x-major grid, s_out (N_o, 2), taper (N_o,))."""
+    span = [reach[d] + 0.5 * aperture[d] for d in range(2 if dim == 3 else 1)]
+    x = max(span)
+    s_need = min(x / np.hypot(x, z_s), 0.8)
+    s_end = min(s_need + 0.15, 0.95)
+    ds = lam_min / (2.0 * PERIOD_MARGIN * x)
+    if dim == 3:
+        ds = max(ds, s_end * np.sqrt(np.pi / MAX_DIRECTIONS))
+    m = int(np.ceil(s_end / ds))
+    ax = np.arange(-m, m + 1) * ds
+    if dim == 3:
+        sx, sy = np.meshgrid(ax, ax, indexing="ij")
+        full = np.stack([sx.ravel(), sy.ravel()], axis=1)
+        axes = [ax, ax]
+    else:
+        full = np.stack([ax, np.zeros_like(ax)], axis=1)
+        axes = [ax]
+    mag = np.hypot(full[:, 0], full[:, 1])
+    keep = mag < s_end
+    edge = np.clip((mag[keep] - s_need) / (s_end - s_need), 0.0, 1.0)
+    return ds, axes, keep, full[keep], 0.5 + 0.5 * np.cos(np.pi * edge)
 
 
 def _edge(x: np.ndarray, half: float, soft: float) -> np.ndarray:
