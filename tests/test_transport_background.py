@@ -282,3 +282,33 @@ def test_side_losses_match_the_walled_diffusions_eigenmodes(dim: int) -> None:
     assert np.all(free.side_losses(b2, a, dim) == 1.0)
     with pytest.raises(ValueError, match="width"):
         ScatteringLayer(z_surface=5e-3, ls=ls, width=0.0)
+
+
+def test_halo_geometry_times_each_direction_by_its_ray() -> None:
+    """HaloGeometry (docs/design.md §6.3): τ solves t = t_spec + u(τ) t_rays + τ; at τ = 0 (u = ½) a direction
+    arrives at [z_s(c_θ + c_o) + ½ z_s(s_θ²/c_θ + s_o²/c_o) − ½ z_s (s_θ·s_o)(1/c_θ + 1/c_o)]/c0, which is the
+    specular 2 z_s c for s_o = s_θ and the ray's 2 z_s/c for exact retro-reflection s_o = −s_θ, at every age;
+    its share of the halo is symmetric under the reciprocal swap (o, θ) ↔ (−θ, −o)."""
+    from fpcore.simulate.diffuse import HaloGeometry
+
+    lay = ScatteringLayer(z_surface=5e-3, ls=1.8e-3, envelope="diffusion", cbs=True, angular="halo")
+    si = np.array([[0.0, 0.0], [0.3, 0.0], [0.2, -0.1]])
+    so = np.concatenate([si, -si, [[0.5, 0.2]]])
+    geo = HaloGeometry(lay, so, si, 2e-3, 3, C0)
+    t = np.linspace(0.0, 40e-6, 400)
+    tau = geo.age(t, lay.ls)
+    k, a2 = 4 * lay.ls / 3 * C0, geo.a_g2
+    beta = k * np.maximum(tau, 0.0)
+    u = (a2 + beta) / (2 * a2 + beta)
+    resid = tau + geo.t_spec[:, :, None] + u * geo.t_rays[:, :, None] - t[None, None, :]
+    assert np.abs(resid).max() < 1e-9
+    c = cosines(si)
+    for i in range(si.shape[0]):
+        onset = geo.t_spec[i, i] + 0.5 * geo.t_rays[i, i]  # specular: o = i
+        assert onset == pytest.approx(2 * lay.z_surface * c[i] / C0, rel=1e-6)
+        retro = si.shape[0] + i  # s_o = −s_θ: no dependence on u
+        assert geo.t_rays[retro, i] == pytest.approx(0.0, abs=1e-12)
+        assert geo.t_spec[retro, i] == pytest.approx(2 * lay.z_surface / c[i] / C0, rel=1e-6)
+    share = geo.share(np.full((so.shape[0], si.shape[0], 1), 5e-6, np.float32), lay.ls, 0.01, cbs=True)
+    # (o, θ) = (−s_1, s_2) and its partner (−s_2, s_1): rows 3 + 1 and 3 + 2.
+    assert share[3 + 1, 2, 0] == pytest.approx(share[3 + 2, 1, 0], rel=1e-5)

@@ -7,6 +7,8 @@ transmit θ. A plane wave o launched by transmit θ that spent a time τ in the 
 array at t = z_s (c_θ + c_o)/c0 + τ (lateral phases referred to the array centre), so its age — and the
 envelope √⟨M²⟩(τ) it carries — depends on its direction: energy arriving obliquely at a given time is
 younger. This keeps the confocal mapping (time, angle) → depth consistent with the age of the wave.
+With angular="halo" (`HaloGeometry`) each direction sees instead the part of the halo where its ray
+through the array lands, at that ray's delay, with its own level.
 
 Transport additions (issue: the paper's regime), each switched by the `ScatteringLayer`:
 
@@ -22,8 +24,9 @@ Transport additions (issue: the paper's regime), each switched by the `Scatterin
   endpoints of a path of length s spread by 2D's per axis (D' = ℓ_s/dim): enhancement 2 at exact
   retro-reflection s_o = −s_θ, a cone of width ~1/(k√(D's)) (Akkermans & Montambaux, ch. 8).
 * **Single scattering by the beads** (single_scattering="field"): the first order is a continuum
-  reflectivity focused like a speckle image (`single_scattering.SingleScatteringField`), and the Gaussian
-  field carries the orders ≥ 2 only; "envelope" keeps all orders in the Gaussian field.
+  reflectivity focused like a speckle image (`single_scattering.SingleScatteringField`, on its own output
+  grid, projected separately), and the Gaussian field carries the orders ≥ 2 only; "envelope" keeps all
+  orders in the Gaussian field.
 
 Construction per frame: complex white noise ξ(o, θ, t_n) on a baseband time grid (spacing
 Δ = period/n_bb, E|ξ|² = 1/Δ, i.e. unit spectral density), multiplied by the envelope, Fourier
@@ -134,21 +137,34 @@ class HaloGeometry:
         """4D's for the age τ (D' = ℓ_s/d)."""
         return (4.0 * ls / self.dim * self.v) * np.maximum(tau, 0.0)
 
-    def age(self, t: np.ndarray, ls: float, iterations: int = 8) -> np.ndarray:
+    def age(self, t: np.ndarray, ls: float, iterations: int = 12, tol: float = 1e-10) -> np.ndarray:
         """τ (N_o, N_θ, N_t) float32 with t = t_spec + u(τ) t_rays + τ, by Newton from the left (the map is
-        increasing and concave in τ, so the iterates rise monotonically to the root); τ ≤ 0 before the wave."""
+        increasing and concave in τ, so the iterates rise monotonically to the root; stopped once no step
+        exceeds `tol` seconds); τ ≤ 0 before the wave."""
         target = np.asarray(t, np.float32)[None, None, :] - self.t_spec[:, :, None]
         g = self.t_rays[:, :, None]
         tau = target - g
         k = np.float32(4.0 * ls / self.dim * self.v)
         a2 = np.float32(self.a_g2)
         for _ in range(iterations):
-            beta = k * np.maximum(tau, 0.0)
-            den = 2 * a2 + beta
-            u = (a2 + beta) / den
-            du = np.where(tau > 0, k * a2 / den**2, 0.0)
-            tau = tau - (tau + g * u - target) / (1.0 + g * du)
-        return tau.astype(np.float32)
+            den = np.maximum(tau, 0.0)
+            den *= k
+            den += 2 * a2  # 2a_g² + 4D's
+            resid = a2 / den  # 1 − u
+            np.subtract(1.0, resid, out=resid)
+            resid *= g
+            resid += tau
+            resid -= target  # τ + g u − t'
+            slope = np.square(den, out=den)
+            np.divide(k * a2, slope, out=slope)
+            slope[tau <= 0] = 0.0
+            slope *= g
+            slope += 1.0  # 1 + g du/dτ
+            resid /= slope
+            tau -= resid
+            if float(np.abs(resid).max(initial=0.0)) < tol:
+                break
+        return tau
 
     def share(self, tau: np.ndarray, ls: float, spacing: float, cbs: bool) -> np.ndarray:
         """The intensity factor of each (o, θ, τ) for the noise's envelope, weights (`weights`) divided out:
@@ -270,7 +286,7 @@ class DiffuseBackground:
                 rate = lay.intensity(tab, c0, aperture_radius, dim, pulse_energy=1.0, orders_from=orders_from)
             else:
                 rate = lay.exitance(tab, c0, aperture_radius, dim, orders_from=orders_from)
-            env = np.interp(tau, tab, np.sqrt(np.maximum(rate, 0.0)), left=0.0).astype(np.float32)
+            env = _interp_uniform(tau, tab, np.sqrt(np.maximum(rate, 0.0)), left=0.0)
             if geo is not None:  # each direction's share of the halo, the weights' normalisation divided out
                 env *= np.sqrt(geo.share(tau, lay.ls, cell, layer.cbs) * np.float32(norm2))
             if layer.cbs:
@@ -284,9 +300,7 @@ class DiffuseBackground:
             self.envelopes.append(env)
         self.envelope = self.envelopes[len(self.envelopes) // 2]  # the band-centre one (tests, diagnostics)
         self.g1 = (
-            np.interp(tau, tab, layer.at_frequency(band.centre).correlation_per_frame(tab, c0, band.centre)).astype(
-                np.float32
-            )
+            _interp_uniform(tau, tab, layer.at_frequency(band.centre).correlation_per_frame(tab, c0, band.centre))
             if layer.frame_displacement > 0
             else None
         )
@@ -411,6 +425,20 @@ def project_plane_waves(
             p = np.exp(-1j * k[m] * phase_u).astype(np.complex64)
         out[m] = p @ aw[:, :, m]
         p *= step
+    return out
+
+
+def _interp_uniform(x: np.ndarray, grid: np.ndarray, values: np.ndarray, left: float | None = None) -> np.ndarray:
+    """np.interp(x, grid, values, left) for a uniform `grid` starting at 0, in float32 (x's shape)."""
+    n = grid.size
+    scale = np.float32((n - 1) / max(float(grid[-1]), 1e-30))
+    pos = np.clip(x * scale, 0.0, np.float32(n - 1))
+    i = np.minimum(pos.astype(np.int32), n - 2)
+    frac = pos - i
+    v = np.asarray(values, dtype=np.float32)
+    out = v[i] * (np.float32(1.0) - frac) + v[i + 1] * frac
+    if left is not None:
+        out[x < 0] = left
     return out
 
 

@@ -43,7 +43,10 @@ Physics (paper Supplementary S1, S4; docs/design.md §6):
     medium reaches the array at t = z_s (c_θ + c_o)/c0 + τ, so obliquely arriving energy is younger
     and the confocal (time, angle) → depth mapping stays consistent with the age of the wave. The
     field on the array is thereby a speckle of grain ≈ λ/(2 s_d); transmits are independent (the
-    angular memory effect of a diffusive medium, ~1/(k b), is far below the transmit spacing);
+    angular memory effect of a diffusive medium, ~1/(k b), is far below the transmit spacing). This is
+    ``angular="uniform"``; ``angular="halo"`` gives each direction the share of the halo that its ray
+    through the array sees, at that ray's delay, and the level there (`diffuse.HaloGeometry`; the
+    sinking scenarios' default, validated against Foldy–Lax: docs/design.md §6.3);
   - *frequency correlation*: each amplitude is white noise shaped by the envelope, so the
     correlation frequency is δf ≈ 1/(envelope duration) and N_f = Δf/δf grains fill the band (S4);
   - *frame-to-frame decorrelation*: the grains move by ⟨Δr²⟩^{1/2} between frames; a path of length s
