@@ -42,6 +42,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import background_metrics as bm  # noqa: E402
 import foldy_lax_reference as flr  # noqa: E402
 
+import fpcore.simulate.single_scattering as ss_mod  # noqa: E402
 from fpcore.simulate.medium import DiffuseBackground, ScatteringLayer  # noqa: E402
 
 
@@ -82,6 +83,8 @@ def model_realisations(
             np.random.default_rng(seed0 + r),
         )
         out.append(bg.next())
+        if r == 0 and bg.single is not None:
+            print(f"  single scattering on {bg.single.n_o} output directions (Δs = {bg.single.ds:.4f})")
     return np.stack(out)
 
 
@@ -316,6 +319,13 @@ def main(argv: list[str] | None = None) -> int:
         help="give the model the FL slab's thickness and width (the diffusion envelope with the images of its "
         "bottom and sides)",
     )
+    ap.add_argument(
+        "--ss-directions",
+        type=int,
+        default=None,
+        help="cap on the single scattering's output directions in 3D (default: the simulator's, "
+        "fpcore.simulate.single_scattering.MAX_DIRECTIONS; 0: none, the grid its margin asks for)",
+    )
     ap.add_argument("--png", default="out/bench/validate_background.png")
     args = ap.parse_args(argv)
     try:
@@ -327,7 +337,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.model_realisations is not None and args.model_realisations < 1:
         print(f"--model-realisations: expected an integer >= 1, got {args.model_realisations}", file=sys.stderr)
         return 2
+    if args.ss_directions is not None:
+        if args.ss_directions < 0:
+            print(f"--ss-directions: expected an integer >= 0, got {args.ss_directions}", file=sys.stderr)
+            return 2
+        ss_mod.MAX_DIRECTIONS = args.ss_directions or 10**9
     print(f"model: fpcore.simulate.medium at {model_commit()}; layer options {layer_kw or 'none (defaults)'}")
+    print(f"  single scattering: at most {ss_mod.MAX_DIRECTIONS} output directions in 3D")
     results = []
     for dim in (2, 3) if args.dim == "both" else (int(args.dim),):
         res = compare(dim, args.quick, args.model_realisations, layer_kw, args.match_dispersion, args.slab)

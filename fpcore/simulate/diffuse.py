@@ -286,7 +286,7 @@ class DiffuseBackground:
                 rate = lay.intensity(tab, c0, aperture_radius, dim, pulse_energy=1.0, orders_from=orders_from)
             else:
                 rate = lay.exitance(tab, c0, aperture_radius, dim, orders_from=orders_from)
-            env = _interp_uniform(tau, tab, np.sqrt(np.maximum(rate, 0.0)), left=0.0)
+            env = np.interp(tau, tab, np.sqrt(np.maximum(rate, 0.0)), left=0.0).astype(np.float32)
             if geo is not None:  # each direction's share of the halo, the weights' normalisation divided out
                 env *= np.sqrt(geo.share(tau, lay.ls, cell, layer.cbs) * np.float32(norm2))
             if layer.cbs:
@@ -300,7 +300,9 @@ class DiffuseBackground:
             self.envelopes.append(env)
         self.envelope = self.envelopes[len(self.envelopes) // 2]  # the band-centre one (tests, diagnostics)
         self.g1 = (
-            _interp_uniform(tau, tab, layer.at_frequency(band.centre).correlation_per_frame(tab, c0, band.centre))
+            np.interp(tau, tab, layer.at_frequency(band.centre).correlation_per_frame(tab, c0, band.centre)).astype(
+                np.float32
+            )
             if layer.frame_displacement > 0
             else None
         )
@@ -425,20 +427,6 @@ def project_plane_waves(
             p = np.exp(-1j * k[m] * phase_u).astype(np.complex64)
         out[m] = p @ aw[:, :, m]
         p *= step
-    return out
-
-
-def _interp_uniform(x: np.ndarray, grid: np.ndarray, values: np.ndarray, left: float | None = None) -> np.ndarray:
-    """np.interp(x, grid, values, left) for a uniform `grid` starting at 0, in float32 (x's shape)."""
-    n = grid.size
-    scale = np.float32((n - 1) / max(float(grid[-1]), 1e-30))
-    pos = np.clip(x * scale, 0.0, np.float32(n - 1))
-    i = np.minimum(pos.astype(np.int32), n - 2)
-    frac = pos - i
-    v = np.asarray(values, dtype=np.float32)
-    out = v[i] * (np.float32(1.0) - frac) + v[i + 1] * frac
-    if left is not None:
-        out[x < 0] = left
     return out
 
 

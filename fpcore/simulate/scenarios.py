@@ -11,8 +11,8 @@ Each is a function returning a `fpcore.simulate.scene.Scenario` (the rig and its
 
 * ``sinking-sphere`` — the paper's first experiment (main text Fig. 1–3, Supplementary S1–S4): a
   32×32 matrix array (pitch λ/2 at 2.2 MHz, band 1.8–2.6 MHz) over 16 mm of water on a vibrated
-  granular suspension (ℓ_s = 1.8 mm at 2.2 MHz, ℓ_a = 8 mm); a 10 mm sphere settling from 9.9 to 10.5 mm
-  below the surface (5.5–5.8 ℓ_s) and a static 8 mm sphere 10 mm below (5.6 ℓ_s), where the spheres'
+  granular suspension (ℓ_s = 1.8 mm at 2.2 MHz, ℓ_a = 8 mm); a 10 mm sphere settling from 9.6 to 10.2 mm
+  below the surface (5.3–5.7 ℓ_s) and a static 8 mm sphere 10 mm below (5.6 ℓ_s), where the spheres'
   confocal contrast is the paper's 1/150 and 1/50,
   in the paper's conventions (CONVENTIONS); 5×5 plane waves; the background decorrelates between
   frames. ``quick``: 16×16 elements over the same aperture (pitch λ), fs = 6.5 MHz.
@@ -94,6 +94,10 @@ CONVENTIONS = ("paper", "legacy")
 #: and 1/2.8 with the envelope background): the spheres' own echoes stand out more than e^{−z/ℓ_s};
 #: PAPER_POSITIONS keeps them. Legacy: 8 → 8.6 and 7.5 mm.
 _DEPTHS = {"paper": ((9.9e-3, 10.5e-3), 10.0e-3), "legacy": ((8e-3, 8.6e-3), 7.5e-3)}
+#: The spheres' since the halo geometry and the single scattering's own grid (2026-12-02): on that fog the
+#: old 9.9 → 10.5 mm gave sphere 1 C_I 1/99 → 1/193, so it settles 9.6 → 10.2 mm (1/90 → 1/117 → 1/148 on
+#: frames 0, 15, 31); sphere 2 stays at 10 mm (1/89 → 1/91 → 1/98). The cylinders keep _DEPTHS.
+_SPHERE_DEPTHS = {"paper": ((9.6e-3, 10.2e-3), 10.0e-3), "legacy": _DEPTHS["legacy"]}
 #: The paper's stated centre depths (main text: 9 and 7 mm), sphere 1 settling to 9 mm: pass as
 #: ``sink=PAPER_POSITIONS[0], sphere2_depth=PAPER_POSITIONS[1]``.
 PAPER_POSITIONS = ((8.4e-3, 9.0e-3), 7.0e-3)
@@ -105,6 +109,7 @@ def _depths(
     sink: tuple[float, float] | None,
     static_depth: float | None,
     depth_ls: float | None,
+    table: dict[str, tuple[tuple[float, float], float]] = _DEPTHS,
 ) -> tuple[tuple[float, float], float]:
     """(settling target's start and end depth, static target's depth) below the surface (m)."""
     if depth_ls is not None:
@@ -112,7 +117,7 @@ def _depths(
             raise ValueError(f"depth_ls: expected a positive number of mean free paths, got {depth_ls}")
         d = depth_ls * layer.ls
         return (sink or (d, d + 0.6e-3)), (d if static_depth is None else static_depth)
-    return (sink or _DEPTHS[conventions][0]), (_DEPTHS[conventions][1] if static_depth is None else static_depth)
+    return (sink or table[conventions][0]), (table[conventions][1] if static_depth is None else static_depth)
 
 
 def _granular_suspension(conventions: str = "paper", **overrides: Any) -> ScatteringLayer:
@@ -172,7 +177,7 @@ def sinking_sphere(
     sphere 1 (d = 10 mm) centre `sink` below the surface, settling (decelerating) along a straight
     trajectory that also drifts by 0.45 mm in x and 0.25 mm in y; sphere 2 (d = 8 mm) static,
     centre `sphere2_depth` below the surface; both start in the plane y = 0 at x = ∓4.75 mm. With the
-    default `conventions="paper"` (see CONVENTIONS) sphere 1 settles from 9.9 to 10.5 mm (5.5 → 5.8 ℓ_s)
+    default `conventions="paper"` (see CONVENTIONS) sphere 1 settles from 9.6 to 10.2 mm (5.3 → 5.7 ℓ_s)
     and sphere 2 sits at 10 mm (5.6 ℓ_s): the depths at which their measured confocal contrast is the
     paper's 1/150 and 1/50 (main text eq. (1); its stated 9 and 7 mm give 1/13–1/24 and 1/2.8 in this
     model, `PAPER_POSITIONS`); the background level is the transport model's, with no gain; the
@@ -200,7 +205,7 @@ def sinking_sphere(
     calibration = calibration or ("nominal" if legacy else "axis")
     if calibration not in ("nominal", "axis"):
         raise ValueError(f"calibration: expected 'nominal' or 'axis', got {calibration!r}")
-    sink, z2 = _depths(conventions, layer, sink, sphere2_depth, depth_ls)
+    sink, z2 = _depths(conventions, layer, sink, sphere2_depth, depth_ls, _SPHERE_DEPTHS)
     p1 = _sinking(np.array([-4.75e-3, 0.0, zs + sink[0]]), np.array([-5.2e-3, 0.25e-3, zs + sink[1]]), n_frames)
     p2 = np.array([[4.75e-3, 0.0, zs + z2]])
     axis = np.array([0.0, 0.0, 25e-3])
@@ -245,7 +250,7 @@ def sinking_cylinder(
     ℓ_a = 8 mm, frame displacement 50 µm); cylinder 1 (d = 10 mm) settles along `sink` with a 0.45 mm
     drift in x; cylinder 2 (d = 8 mm) static at `cylinder2_depth`; both of the spheres' material
     (ρ = 5700 kg/m³, c_p = 2700 m/s, c_t = 2000 m/s). `conventions` as in `sinking_sphere`: "paper"
-    (default) puts the cylinders at the spheres' depths (9.9 → 10.5 mm and 10 mm), takes the
+    (default) puts the cylinders at the spheres' earlier depths (9.9 → 10.5 mm and 10 mm), takes the
     transport model's background level (no gain) and calibrates once in water on the axis at 25 mm;
     "legacy": front-face attenuation, 8 → 8.6 and 7.5 mm, gain 1.0, calibrations at the initial
     (true) positions. calibration="nominal"/"axis" overrides the calibration position; `depth_ls` as in
