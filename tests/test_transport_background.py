@@ -312,3 +312,38 @@ def test_halo_geometry_times_each_direction_by_its_ray() -> None:
     share = geo.share(np.full((so.shape[0], si.shape[0], 1), 5e-6, np.float32), lay.ls, 0.01, cbs=True)
     # (o, θ) = (−s_1, s_2) and its partner (−s_2, s_1): rows 3 + 1 and 3 + 2.
     assert share[3 + 1, 2, 0] == pytest.approx(share[3 + 2, 1, 0], rel=1e-5)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_first_order_reflectance_is_the_single_scattering_paths_flux(dim: int) -> None:
+    """ρ₁(s) = κ_d e^{−s/ℓ_s}/ℓ_s (medium.first_order_reflectance) against a Monte Carlo of first scatterings:
+    a normally incident plane wave scatters first at depth z ~ Exp(ℓ_s), isotropically (3D: μ uniform in [−1, 1];
+    2D: angle uniform in [0, 2π)); an upward path leaves with weight e^{−z/(ℓ_s μ)} after s = z(1 + 1/μ). The
+    histogram of s is ρ₁; the diffusion envelope without its first order is what is left, never negative."""
+    from fpcore.simulate.medium import first_order_reflectance
+
+    ls, n = 1.8e-3, 2_000_000
+    rng = np.random.default_rng(7)
+    z = rng.exponential(ls, n)
+    mu = rng.uniform(-1.0, 1.0, n) if dim == 3 else np.sin(rng.uniform(0.0, 2 * np.pi, n))
+    up = mu > 1e-9
+    z, mu = z[up], mu[up]
+    s = z * (1 + 1 / mu)
+    w = np.exp(-z / (ls * mu))
+    edges = np.linspace(0.0, 4 * ls, 41)
+    hist, _ = np.histogram(s, edges, weights=w)
+    density = hist / n / np.diff(edges)
+    centres = 0.5 * (edges[1:] + edges[:-1])
+    exact = [
+        float(np.mean(first_order_reflectance(np.linspace(a, b, 201), ls, dim)))
+        for a, b in zip(edges[:-1], edges[1:], strict=True)
+    ]
+    np.testing.assert_allclose(density, exact, rtol=0.03)
+    kappa = (1 - np.log(2)) / 2 if dim == 3 else (np.pi - 2) / (2 * np.pi)
+    assert w.sum() / n == pytest.approx(kappa, rel=0.01)
+    lay = ScatteringLayer(z_surface=5e-3, ls=ls, envelope="diffusion")
+    rest = lay.reflectance_density(centres, orders_from=2, dim=dim)
+    assert np.all(rest >= 0.0)
+    np.testing.assert_allclose(
+        rest, np.maximum(lay.reflectance_density(centres, dim=dim) - first_order_reflectance(centres, ls, dim), 0.0)
+    )

@@ -85,6 +85,20 @@ def reciprocal_pairs(s_out: np.ndarray, sines: np.ndarray, tol: float = 1e-7) ->
     return np.where(ok, po, -1), np.where(ok, pt, -1)
 
 
+def landing(z_s: float, sines: np.ndarray) -> np.ndarray:
+    """Where a plane wave of these sines from the array's centre meets the surface z_s: z_s s/c, (N, 2)."""
+    si = np.asarray(sines, dtype=np.float64)
+    return z_s * si / cosines(si)[:, None]
+
+
+def halo_reach(z_s: float, sines: np.ndarray, aperture_radius: float, spread: float) -> float:
+    """The sine out to which a halo of lateral spread 4D's = `spread` is seen from the array's centre: its
+    width w (w² = 2a_g² + 4D's, `HaloGeometry`) times 1.5 beyond the farthest transmit's landing."""
+    r = float(np.max(np.linalg.norm(landing(z_s, sines), axis=1), initial=0.0))
+    r += 1.5 * np.sqrt(2 * a_g2(aperture_radius) + spread)
+    return r / np.hypot(r, z_s)
+
+
 def a_g2(aperture_radius: float) -> float:
     """a_g² = 2a²/3: the Gaussian e^{−x²/a_g²} with the variance a²/3 of a uniform aperture |x| < a."""
     return 2.0 * aperture_radius**2 / 3.0
@@ -119,8 +133,8 @@ class HaloGeometry:
         self.flux = (2.0 * aperture_radius / np.sqrt(np.pi * self.a_g2)) ** (dim - 1)
         so, si = np.asarray(s_out, float), np.asarray(sines, float)
         c_o, c_i = cosines(so), cosines(si)
-        rho_o = -self.z_s * so / c_o[:, None]
-        rho_i = self.z_s * si / c_i[:, None]
+        rho_o = -landing(self.z_s, so)  # an output's ray through the array, traced back to the surface
+        rho_i = landing(self.z_s, si)
         self.sep2 = np.sum((rho_o[:, None, :] - rho_i[None, :, :]) ** 2, axis=2)  # |ρ_o − ρ_θ|², (N_o, N_θ)
         self.rho_o, self.rho_i = rho_o, rho_i
         # A medium of finite width: absorbing walls at ±X, X = width/2 + z_e, per lateral axis (side_losses).
@@ -133,9 +147,13 @@ class HaloGeometry:
         self.t_spec = ((a - c) / c0).astype(np.float32)
         self.t_rays = np.maximum((b + c) / c0, 0.0).astype(np.float32)
 
+    def spread_rate(self, ls: float) -> float:
+        """4D's per unit age: 4 (ℓ_s/d) v."""
+        return 4.0 * ls / self.dim * self.v
+
     def spread(self, tau: np.ndarray, ls: float) -> np.ndarray:
         """4D's for the age τ (D' = ℓ_s/d)."""
-        return (4.0 * ls / self.dim * self.v) * np.maximum(tau, 0.0)
+        return self.spread_rate(ls) * np.maximum(tau, 0.0)
 
     def age(self, t: np.ndarray, ls: float, iterations: int = 12, tol: float = 1e-10) -> np.ndarray:
         """τ (N_o, N_θ, N_t) float32 with t = t_spec + u(τ) t_rays + τ, by Newton from the left (the map is
@@ -144,7 +162,7 @@ class HaloGeometry:
         target = np.asarray(t, np.float32)[None, None, :] - self.t_spec[:, :, None]
         g = self.t_rays[:, :, None]
         tau = target - g
-        k = np.float32(4.0 * ls / self.dim * self.v)
+        k = np.float32(self.spread_rate(ls))
         a2 = np.float32(self.a_g2)
         for _ in range(iterations):
             den = np.maximum(tau, 0.0)
@@ -221,11 +239,9 @@ class DiffuseBackground:
         # Angular spread of the halo seen from the array at the middle of the window.
         mid = window.t0 + 0.5 * window.duration - 2 * layer.z_surface / c0
         halo = layer.angular == "halo"
-        if halo:  # out to 1.5 w beyond the farthest transmit's landing, at the window's middle (HaloGeometry)
-            end = window.t0 + 0.5 * window.duration - 2 * layer.z_surface / c0
-            w2 = 2 * a_g2(aperture_radius) + 4 * float(layer.ls_at(band.centre)) / dim * v * max(end, 0.0)
-            r = float(np.max(np.linalg.norm(layer.z_surface * s / cosines(s)[:, None], axis=1))) + 1.5 * np.sqrt(w2)
-            self.s_d = r / np.hypot(r, layer.z_surface)
+        if halo:  # the halo at the window's middle (docs/design.md §6.3: ≤ 0.4 dB lost at its end)
+            spread = 4 * float(layer.ls_at(band.centre)) / dim * v * max(mid, 0.0)
+            self.s_d = halo_reach(layer.z_surface, s, aperture_radius, spread)
         else:
             b = float(np.sqrt(layer.halo_radius2(np.array(max(mid, 0.0) * v), aperture_radius, dim)))
             self.s_d = b / np.hypot(b, layer.z_surface)
