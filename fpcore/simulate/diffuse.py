@@ -44,6 +44,7 @@ import scipy.fft as sfft
 
 from ..acquisition import element_grid_axes
 from ..geometry import cosines
+from .reciprocity import ReciprocalBlock
 from .single_scattering import SingleScatteringField
 from .waves import Band, TimeWindow
 
@@ -276,61 +277,33 @@ class DiffuseBackground:
         norm2 = float(np.sum(w**2))
         self.weights = (w / np.sqrt(norm2)).astype(np.float32)
         self.n_o = self.s_out.shape[0]
-        t = window.t0 + np.arange(self.n_bb) * self.dt
-        geo = HaloGeometry(layer, self.s_out, s, aperture_radius, dim, c0) if halo else None
-        if geo is not None:
-            tau = geo.age(t, float(layer.ls_at(band.centre)))
-        else:
-            t_on = layer.z_surface * (cosines(s)[None, :] + c_o[:, None]) / c0  # (N_o, N_θ)
-            tau = (t[None, None, :] - t_on[:, :, None]).astype(np.float32)
-        cell = float(np.prod(spacings))  # Δs^{d−1}, the sine area of one direction
+        self._t = window.t0 + np.arange(self.n_bb) * self.dt
+        self._aperture_radius, self._v = aperture_radius, v
+        self._cell = float(np.prod(spacings))  # Δs^{d−1}, the sine area of one direction
+        self._norm2 = norm2
         # Sub-bands (one for a non-dispersive medium) and their triangular blending weights in f.
         ls_span = layer.ls_at(np.array([self.freqs[0], self.freqs[-1]]))
         n_sub = 1 + int(np.ceil(np.log(float(ls_span.max() / ls_span.min())) / np.log(1.25) - 1e-9))
         n_sub = 1 if layer.ls_exponent == 0.0 else min(N_SUB_BANDS, n_f, max(n_sub, 2))
         self.centres = np.linspace(self.freqs[0], self.freqs[-1], n_sub) if n_sub > 1 else np.array([band.centre])
         self.blend = _triangles(self.freqs, self.centres)  # (n_sub, N_f)
-        orders_from = 2 if layer.single_scattering == "field" else 1
-        tab = np.linspace(0.0, max(float(tau.max()), 1e-9), 4096)
-        sep2 = np.sum((self.s_out[:, None, :] + s[None, :, :]) ** 2, axis=2)  # |s_o + s_θ|², (N_o, N_θ)
-        self.envelopes: list[np.ndarray] = []
-        for fc in self.centres:
-            lay = layer.at_frequency(float(fc))
-            # ⟨M²⟩ per unit pulse energy: unit-density white noise shaped by this envelope and filtered by
-            # S(f) has variance envelope² · E_s = ⟨M²⟩. Tabulated in τ, then interpolated.
-            if geo is None:
-                rate = lay.intensity(tab, c0, aperture_radius, dim, pulse_energy=1.0, orders_from=orders_from)
-            else:
-                rate = lay.exitance(tab, c0, aperture_radius, dim, orders_from=orders_from)
-            env = np.interp(tau, tab, np.sqrt(np.maximum(rate, 0.0)), left=0.0).astype(np.float32)
-            if geo is not None:  # each direction's share of the halo, the weights' normalisation divided out
-                env *= np.sqrt(geo.share(tau, lay.ls, cell, layer.cbs) * np.float32(norm2))
-            if layer.cbs:
-                kc = 2 * np.pi * fc / c0
-                path = v * np.maximum(tau, 0.0)
-                dps = (lay.ls / dim) * path  # D's
-                if geo is not None:  # beams of the aperture bound the endpoints' separation (HaloGeometry)
-                    dps = dps * np.float32(geo.a_g2) / (np.float32(geo.a_g2) + 4 * dps)
-                cone = np.exp(-(kc**2) * sep2[:, :, None] * dps)
-                env *= np.sqrt(1.0 + cone).astype(np.float32)
-            self.envelopes.append(env)
+        self.envelopes, self.g1 = self._envelopes(self.s_out, s, cone=layer.cbs)
         self.envelope = self.envelopes[len(self.envelopes) // 2]  # the band-centre one (tests, diagnostics)
-        self.g1 = (
-            np.interp(tau, tab, layer.at_frequency(band.centre).correlation_per_frame(tab, c0, band.centre)).astype(
-                np.float32
-            )
-            if layer.frame_displacement > 0
-            else None
-        )
-        self.n_reciprocal_pairs = 0
+        # Reciprocity and coherent backscattering between the transmits' beams (`reciprocity`): the main
+        # lobes' block of reversed-path pairs, with its own symmetric noise; outside it, independent noise.
+        self.block: ReciprocalBlock | None = None
+        self._block_env: list[np.ndarray] = []
+        self._block_g1: np.ndarray | None = None
         if layer.cbs:
-            pair_o, pair_t = reciprocal_pairs(self.s_out, s)
-            oo, tt = np.meshgrid(np.arange(self.n_o), np.arange(self.n_i), indexing="ij")
-            # Copy (o', θ') ← (o, θ) for one member of each pair (the exact retro pairs map onto themselves).
-            lead = (pair_o >= 0) & ((pair_o > oo) | ((pair_o == oo) & (pair_t > tt)))
-            self._copy_src = (oo[lead], tt[lead])
-            self._copy_dst = (pair_o[lead], pair_t[lead])
-            self.n_reciprocal_pairs = int(lead.sum())
+            try:
+                self.block = ReciprocalBlock(self.s_out, spacings, s, w, el, self.freqs, c0)
+            except ValueError:  # transmits off the grid (irregular sines): no reciprocal partners
+                self.block = None
+        if self.block is not None:
+            blk = self.block
+            env_b, g1_b = self._envelopes(self.s_out[blk.rows], blk.inputs, cone=False)
+            self._block_env = blk.envelopes(env_b)  # (n_pairs, 1, n_bb): T_ij = T_ji
+            self._block_g1 = None if g1_b is None else blk.pack(g1_b)
         self.single: SingleScatteringField | None = None
         if layer.single_scattering == "field":
             t_end = window.t0 + window.period
@@ -350,34 +323,103 @@ class DiffuseBackground:
                 ss_rng,
             )
         self.state: np.ndarray | None = None
+        self.block_state: np.ndarray | None = None
         self._frozen: np.ndarray | None = None
         self._phase = np.exp(-2j * np.pi * self.freqs * window.t0).astype(np.complex64)
 
-    def _noise(self) -> np.ndarray:
-        shape = (self.n_o, self.n_i, self.n_bb)
+    def _envelopes(
+        self, s_out: np.ndarray, sines: np.ndarray, cone: bool
+    ) -> tuple[list[np.ndarray], np.ndarray | None]:
+        """Per sub-band, the noise's envelope √⟨M²⟩ of every pair (s_out[o], sines[θ]) on the baseband time
+        grid (N_o, N_θ, n_bb) float32 — each direction's share of the halo and the weights' normalisation
+        included, times √(1 + cone) when `cone` — and the frame-to-frame correlation g₁ (None if frozen)."""
+        layer, dim, c0, t = self.layer, self.dim, self.c0, self._t
+        band = self.band
+        if layer.angular == "halo":
+            geo: HaloGeometry | None = HaloGeometry(layer, s_out, sines, self._aperture_radius, dim, c0)
+            assert geo is not None
+            tau = geo.age(t, float(layer.ls_at(band.centre)))
+        else:
+            geo = None
+            t_on = layer.z_surface * (cosines(sines)[None, :] + cosines(s_out)[:, None]) / c0  # (N_o, N_θ)
+            tau = (t[None, None, :] - t_on[:, :, None]).astype(np.float32)
+        orders_from = 2 if layer.single_scattering == "field" else 1
+        tab = np.linspace(0.0, max(float(tau.max()), 1e-9), 4096)
+        sep2 = np.sum((s_out[:, None, :] + sines[None, :, :]) ** 2, axis=2)  # |s_o + s_θ|², (N_o, N_θ)
+        envelopes = []
+        for fc in self.centres:
+            lay = layer.at_frequency(float(fc))
+            # ⟨M²⟩ per unit pulse energy: unit-density white noise shaped by this envelope and filtered by
+            # S(f) has variance envelope² · E_s = ⟨M²⟩. Tabulated in τ, then interpolated.
+            if geo is None:
+                rate = lay.intensity(tab, c0, self._aperture_radius, dim, pulse_energy=1.0, orders_from=orders_from)
+            else:
+                rate = lay.exitance(tab, c0, self._aperture_radius, dim, orders_from=orders_from)
+            env = np.interp(tau, tab, np.sqrt(np.maximum(rate, 0.0)), left=0.0).astype(np.float32)
+            if geo is not None:  # each direction's share of the halo, the weights' normalisation divided out
+                env *= np.sqrt(geo.share(tau, lay.ls, self._cell, layer.cbs) * np.float32(self._norm2))
+            if cone:
+                kc = 2 * np.pi * fc / c0
+                dps = (lay.ls / dim) * self._v * np.maximum(tau, 0.0)  # D's
+                if geo is not None:  # beams of the aperture bound the endpoints' separation (HaloGeometry)
+                    dps = dps * np.float32(geo.a_g2) / (np.float32(geo.a_g2) + 4 * dps)
+                env *= np.sqrt(1.0 + np.exp(-(kc**2) * sep2[:, :, None] * dps)).astype(np.float32)
+            envelopes.append(env)
+        g1 = None
+        if layer.frame_displacement > 0:
+            corr = layer.at_frequency(band.centre).correlation_per_frame(tab, c0, band.centre)
+            g1 = np.interp(tau, tab, corr).astype(np.float32)
+        return envelopes, g1
+
+    def _white(self, shape: tuple[int, ...]) -> np.ndarray:
+        """Complex white noise of unit spectral density on the baseband grid (E|ξ|² = 1/Δ)."""
         sig = np.float32(np.sqrt(0.5 / self.dt))
-        xi = self.rng.standard_normal(shape, dtype=np.float32) * sig
         out = np.empty(shape, dtype=np.complex64)
-        out.real = xi
+        out.real = self.rng.standard_normal(shape, dtype=np.float32) * sig
         out.imag = self.rng.standard_normal(shape, dtype=np.float32) * sig
-        if self.n_reciprocal_pairs:
-            out[self._copy_dst] = out[self._copy_src]
         return out
+
+    def _noise(self) -> np.ndarray:
+        """The independent outputs' noise (N_o, N_θ, n_bb)."""
+        return self._white((self.n_o, self.n_i, self.n_bb))
+
+    def _block_noise(self) -> np.ndarray:
+        """The reciprocal block's noise over its pairs i ≤ j (n_pairs, 1, n_bb): T_ji is T_ij (`reciprocity`)."""
+        assert self.block is not None
+        return self._white((self.block.n_pairs, 1, self.n_bb))
 
     def _project(self, aw: np.ndarray) -> np.ndarray:
         """M(f, u, θ) = Σ_o aw(o, θ, f) e^{−ik s_o·u} on the multiple-scattering grid."""
         return project_plane_waves(aw, self.freqs, self.c0, self.elements, self.s_out, self._axes, self._keep)
 
-    def multiple_spectrum(self) -> np.ndarray:
-        """A_MS(o, θ, f) of the current noise state: envelope-shaped, Fourier-transformed, sub-bands blended."""
-        assert self.state is not None
-        spec = np.zeros((self.n_o, self.n_i, self.freqs.size), dtype=np.complex64)
-        for env, wts in zip(self.envelopes, self.blend, strict=True):
+    def _shaped(self, state: np.ndarray, envelopes: list[np.ndarray]) -> np.ndarray:
+        """Envelope-shaped noise, Fourier-transformed onto the band bins, sub-bands blended."""
+        spec = np.zeros(state.shape[:2] + (self.freqs.size,), dtype=np.complex64)
+        for env, wts in zip(envelopes, self.blend, strict=True):
             used = wts > 0
-            part = sfft.fft(self.state * env, axis=2, workers=-1)[:, :, : self.freqs.size]
+            part = sfft.fft(state * env, axis=2, workers=-1)[:, :, : self.freqs.size]
             spec[:, :, used] += part[:, :, used] * (wts[used] * self.dt).astype(np.float32)
         spec *= self._phase[None, None, :]
         return spec
+
+    def multiple_spectrum(self) -> np.ndarray:
+        """A_MS(o, θ, f) of the current noise state; the reciprocal block's outputs mix their lobes' pairs
+        (`reciprocity.ReciprocalBlock.mix`; its noise is drawn here the first time)."""
+        assert self.state is not None
+        spec = self._shaped(self.state, self.envelopes)
+        if self.block is not None:
+            if self.block_state is None:
+                self.block_state = self._block_noise()
+            spec[self.block.rows] = self.block.mix(self._shaped(self.block_state, self._block_env))
+        return spec
+
+    @staticmethod
+    def _evolve(state: np.ndarray, g1: np.ndarray, fresh: np.ndarray) -> np.ndarray:
+        """ξ_n = g₁ ξ_{n−1} + √(1 − g₁²) ξ'_n, in place."""
+        fresh *= np.sqrt(np.maximum(np.float32(0), np.float32(1) - g1 * g1))
+        state *= g1
+        state += fresh
+        return state
 
     def next(self) -> np.ndarray:
         """Advance one frame and return V (N_f, N_u, N_θ) complex64 on the band bins.
@@ -389,17 +431,16 @@ class DiffuseBackground:
         if self.state is None:
             self.state = self._noise()
         elif self.g1 is not None:
-            xi = self._noise()
-            xi *= np.sqrt(np.maximum(np.float32(0), np.float32(1) - self.g1 * self.g1))
-            self.state *= self.g1
-            self.state += xi
+            self.state = self._evolve(self.state, self.g1, self._noise())
+            if self.block_state is not None and self._block_g1 is not None:
+                self.block_state = self._evolve(self.block_state, self._block_g1, self._block_noise())
         out = self._project(self.multiple_spectrum() * self.weights[:, None, None])
         if self.single is not None:  # on its own, finer grid (single_scattering.output_grid)
             self.single.advance()
             ss = self.single
             out += project_plane_waves(ss.spectrum(), self.freqs, self.c0, self.elements, ss.s_out, ss.axes, ss.keep)
         if self.g1 is None:
-            self._frozen, self.state = out, None
+            self._frozen, self.state, self.block_state = out, None, None
         return out
 
 
