@@ -24,10 +24,19 @@ path's very amplitude), whose envelope is that of the pair (o_i, a_j) in the bac
 
     A(o_i, θ, f) = Σ_j W_θj(f) T_ij(f),  W_θj(f) = c_θ w(o_j) B_f(a_j − s_θ)/β_f,
 
-w the outputs' grid weights (taper × 1/c_o) and β_f² = Σ_m |B_f(m Δs)|² over the main lobe: then the
-weights of the pair (i, θ') and (j, θ) agree and the symmetry above is exact for the part of the receive
-beam inside O; its sidelobes beyond M steps see independent outputs. ⟨|A|²⟩ = Σ_j |W_θj|² env²_ij is
-the ladder of (o_i, s_θ) (c_θ/c_j ≈ 1 across a lobe). The outputs outside O keep their independent noise.
+w the outputs' grid weights (taper × 1/c_o), j over the whole block (the main lobe and the sidelobes that fall
+inside it: the receive beam's very weights there, so the symmetry is exact for the part of a receive
+beam inside O; beyond, its sidelobes see independent outputs) and β_f² = Σ_j |B_f(a_j − s_c)|² for the
+transmit nearest the axis (one constant, as the symmetry requires). ⟨|A|²⟩ = Σ_j |W_θj|² env²_ij is the
+ladder of (o_i, s_θ) (c_θ/c_j ≈ 1 across a lobe). The diagonal T_ii, the exactly retro-reflected plane
+wave (−a_i, a_i), is its own reversed path: ⟨|T_ii|²⟩ = 2 × ladder (in the element basis, the confocal
+diagonal's enhancement of 2). With it, a receive beam's retro intensity is 2 − ΣW⁴/(ΣW²)² + ΣW⁴/(ΣW²)²
+= 2 × ladder exactly; without it, ~1.6 for a beam of a few grid steps (measured). The outputs outside O
+keep their independent noise.
+
+The cone's width is the beams' (exp(−k²q²a_g²/4)) at every age: while the halo is still narrower than the
+aperture (the first few µs under the surface) the physical cone is wider; plane-wave elements with the
+same momentum transfer would then be correlated, which this model does not represent.
 """
 
 from __future__ import annotations
