@@ -12,6 +12,7 @@ from fpcore.geometry import cosines
 from fpcore.simulate import scenario
 from fpcore.simulate.diffuse import DiffuseBackground, aligned_spacing, project_plane_waves, reciprocal_pairs
 from fpcore.simulate.medium import ScatteringLayer
+from fpcore.simulate.reciprocity import array_factor, main_lobe_steps
 from fpcore.simulate.scenarios import PAPER_POSITIONS
 from fpcore.simulate.single_scattering import SingleScatteringField
 from fpcore.simulate.waves import Band, TimeWindow, radiate_points
@@ -241,6 +242,21 @@ def test_background_is_reciprocal(single: str, angular: str) -> None:
     unrelated = corr[i, j][:, i, j]
     unrelated = unrelated[(i[:, None] != i[None]) | (j[:, None] != j[None])]
     assert partner.mean() > 0.8 and np.mean(unrelated) < 0.5
+
+
+def test_array_factor_is_the_dirichlet_kernel_and_the_lobe_stops_before_its_null() -> None:
+    """B_f(δ) = (1/N) Σ_u e^{ikδu} of a regular line of N elements at pitch p is sin(Nkδp/2)/(N sin(kδp/2))
+    (`reciprocity.array_factor`); the main lobe on a grid Δs ends at the last step before the first sampled
+    minimum, i.e. below the null λ/(N p Δs) = 2.9 steps: 2 steps."""
+    n, pitch, k = 16, 0.68e-3, 2 * np.pi * 1.4e6 / C0
+    el = np.zeros((n, 3))
+    el[:, 0] = (np.arange(n) - (n - 1) / 2) * pitch
+    delta = np.linspace(1e-4, 0.2, 57)
+    x = k * delta * pitch
+    got = array_factor(el, np.stack([delta, np.zeros_like(delta)], axis=1), np.array([k]))[:, 0]
+    np.testing.assert_allclose(got, np.sin(n * x / 2) / (n * np.sin(x / 2)), atol=1e-12)
+    ds = 2 * np.pi / (k * n * pitch) / 2.9  # the null at 2.9 steps
+    assert main_lobe_steps(el, ds, 0, k) == 2
 
 
 def test_coherent_backscattering_doubles_the_retro_intensity() -> None:

@@ -339,12 +339,10 @@ class DiffuseBackground:
         included, times √(1 + cone) when `cone` — and the frame-to-frame correlation g₁ (None if frozen)."""
         layer, dim, c0, t = self.layer, self.dim, self.c0, self._t
         band = self.band
-        if layer.angular == "halo":
-            geo: HaloGeometry | None = HaloGeometry(layer, s_out, sines, self._aperture_radius, dim, c0)
-            assert geo is not None
+        geo = HaloGeometry(layer, s_out, sines, self._aperture_radius, dim, c0) if layer.angular == "halo" else None
+        if geo is not None:
             tau = geo.age(t, float(layer.ls_at(band.centre)))
         else:
-            geo = None
             t_on = layer.z_surface * (cosines(sines)[None, :] + cosines(s_out)[:, None]) / c0  # (N_o, N_θ)
             tau = (t[None, None, :] - t_on[:, :, None]).astype(np.float32)
         orders_from = 2 if layer.single_scattering == "field" else 1

@@ -46,7 +46,7 @@ import numpy as np
 from ..acquisition import element_grid_axes
 from ..geometry import cosines
 
-__all__ = ["ReciprocalBlock", "main_lobe_steps"]
+__all__ = ["ReciprocalBlock", "array_factor", "main_lobe_steps"]
 
 #: At most this many grid steps per axis in a transmit's main lobe (cost: P² noise series).
 MAX_LOBE_STEPS = 4
