@@ -41,6 +41,10 @@ The RF background is S(f)·V(f); it is statistically independent of every target
 
 from __future__ import annotations
 
+import copy
+import hashlib
+import pickle
+from collections import OrderedDict
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -59,6 +63,11 @@ __all__ = ["DiffuseBackground", "HaloGeometry", "aligned_spacing", "project_plan
 
 #: At most this many sub-bands for a dispersive medium: enough that ℓ_s changes by ≤ 25 % between neighbours.
 N_SUB_BANDS = 8
+
+#: At most this many backgrounds' tables (geometry and envelopes, a few hundred MB each) kept for reuse by
+#: `DiffuseBackground.cached`, the least recently used dropped first.
+CACHED_BACKGROUNDS = 2
+_CACHE: OrderedDict[str, DiffuseBackground] = OrderedDict()
 
 
 def aligned_spacing(ds_max: float, values: np.ndarray, tol: float = 1e-9) -> float | None:
@@ -130,25 +139,38 @@ class HaloGeometry:
     """
 
     def __init__(
-        self, layer: ScatteringLayer, s_out: np.ndarray, sines: np.ndarray, aperture_radius: float, dim: int, c0: float
+        self,
+        layer: ScatteringLayer,
+        s_out: np.ndarray,
+        sines: np.ndarray,
+        aperture_radius: float,
+        dim: int,
+        c0: float,
+        paired: bool = False,
     ) -> None:
         self.dim, self.c0, self.z_s = dim, c0, layer.z_surface
         self.v = c0 if layer.energy_velocity is None else layer.energy_velocity
         self.a_g2 = a_g2(aperture_radius)
         self.flux = (2.0 * aperture_radius / np.sqrt(np.pi * self.a_g2)) ** (dim - 1)
         so, si = np.asarray(s_out, float), np.asarray(sines, float)
+        if paired and so.shape != si.shape:
+            raise ValueError(f"sines: expected {so.shape[0]} directions, one per s_out (paired), got {si.shape[0]}")
+        # Every pair (o, θ) as an (N_o, N_θ) table, or only the pairs (s_out[n], sines[n]) as (n, 1) (paired).
+        self._at_i: tuple[slice | None, ...] = (slice(None), None) if paired else (None, slice(None))
         c_o, c_i = cosines(so), cosines(si)
         rho_o = -landing(self.z_s, so)  # an output's ray through the array, traced back to the surface
         rho_i = landing(self.z_s, si)
-        self.sep2 = np.sum((rho_o[:, None, :] - rho_i[None, :, :]) ** 2, axis=2)  # |ρ_o − ρ_θ|², (N_o, N_θ)
+        self.sep2 = np.sum((rho_o[:, None, :] - rho_i[self._at_i]) ** 2, axis=2)  # |ρ_o − ρ_θ|², (N_o, N_θ)
         self.rho_o, self.rho_i = rho_o, rho_i
         # A medium of finite width: absorbing walls at ±X, X = width/2 + z_e, per lateral axis (side_losses).
         self.wall = 0.5 * layer.width + layer.diffusion_constants(dim)[1] if np.isfinite(layer.width) else None
         self.c_o, self.c_i = c_o, c_i
         # t − τ = (A − C) + u (B + C), B + C ≥ 0 (module doc): the specular part and the rays' extra path.
-        a = self.z_s * (c_i[None, :] + c_o[:, None])
-        b = self.z_s * ((si**2).sum(1)[None, :] / c_i[None, :] + (so**2).sum(1)[:, None] / c_o[:, None])
-        c = self.z_s * (so @ si.T) * (1.0 / c_o[:, None] + 1.0 / c_i[None, :])
+        ci, oi = c_i[self._at_i], (si**2).sum(1)[self._at_i]
+        a = self.z_s * (ci + c_o[:, None])
+        b = self.z_s * (oi / ci + (so**2).sum(1)[:, None] / c_o[:, None])
+        dot = np.sum(so * si, axis=1)[:, None] if paired else so @ si.T
+        c = self.z_s * dot * (1.0 / c_o[:, None] + 1.0 / ci)
         self.t_spec = ((a - c) / c0).astype(np.float32)
         self.t_rays = np.maximum((b + c) / c0, 0.0).astype(np.float32)
 
@@ -195,7 +217,7 @@ class HaloGeometry:
         Δs^{d−1} the directions' cell, times c_o² where the weights carry the Weyl factor 1/c_o (cbs)."""
         w2 = 2 * np.float32(self.a_g2) + self.spread(tau, ls).astype(np.float32)
         n_omega = np.pi if self.dim == 3 else 2.0
-        per_dir = self.c_i[None, :] * spacing / n_omega * (self.c_o[:, None] if cbs else 1.0 / self.c_o[:, None])
+        per_dir = self.c_i[self._at_i] * spacing / n_omega * (self.c_o[:, None] if cbs else 1.0 / self.c_o[:, None])
         if self.wall is None:
             out = np.exp(-self.sep2.astype(np.float32)[:, :, None] / w2)
         else:  # per axis, the image series Σ_n (−1)ⁿ e^{−(x_o − x_n)²/w²}, x_n = 2nX + (−1)ⁿ x_θ (Carslaw & Jaeger)
@@ -206,7 +228,7 @@ class HaloGeometry:
                 axis = np.zeros_like(w2)
                 for n in range(-m, m + 1):
                     x_n = 2 * n * x_wall + (-1) ** abs(n) * self.rho_i[:, d]
-                    gap = (self.rho_o[:, None, d] - x_n[None, :]).astype(np.float32)
+                    gap = (self.rho_o[:, None, d] - x_n[self._at_i]).astype(np.float32)
                     axis += np.float32((-1) ** abs(n)) * np.exp(-(gap**2)[:, :, None] / w2)
                 out *= np.maximum(axis, 0.0)
         out *= (np.float32(self.a_g2) / w2) ** np.float32(0.5 * (self.dim - 1))
@@ -305,15 +327,15 @@ class DiffuseBackground:
                 self.block = None
         if self.block is not None:
             blk = self.block
-            env_b, g1_b = self._envelopes(self.s_out[blk.rows], blk.inputs, cone=False)
+            i, j = blk.pairs  # the pair (o_i, a_j), i ≤ j, stands for its reversed path (o_j, a_i) too
+            env_b, self._block_g1 = self._envelopes(self.s_out[blk.rows[i]], blk.inputs[j], cone=False, paired=True)
             self._block_env = blk.envelopes(env_b)  # (n_pairs, 1, n_bb): T_ij = T_ji
-            self._block_g1 = None if g1_b is None else blk.pack(g1_b)
         self.single: SingleScatteringField | None = None
         if layer.single_scattering == "field":
+            ss_rng = np.random.default_rng(rng.integers(2**63))  # the beads' own stream (`restart`)
             t_end = window.t0 + window.period
             # Deep enough that the echo at the band's lower −6 dB edge has fallen by e^{−12} in intensity.
             depth_max = max(min(0.5 * c0 * t_end - layer.z_surface, 6.0 * float(layer.l_ext_at(band.f_min))), 1e-3)
-            ss_rng = np.random.default_rng(rng.integers(2**63))
             self.single = SingleScatteringField(
                 layer,
                 s,
@@ -331,23 +353,71 @@ class DiffuseBackground:
         self._frozen: np.ndarray | None = None
         self._phase = np.exp(-2j * np.pi * self.freqs * window.t0).astype(np.complex64)
 
+    @classmethod
+    def cached(
+        cls,
+        layer: ScatteringLayer,
+        elements: np.ndarray,
+        sines: np.ndarray,
+        window: TimeWindow,
+        band: Band,
+        c0: float,
+        dim: int,
+        aperture_radius: float,
+        rng: np.random.Generator,
+    ) -> DiffuseBackground:
+        """As the constructor, but the tables (which do not depend on `rng`) are shared with an earlier
+        background of the same medium, rig, window and band when one is kept (`CACHED_BACKGROUNDS`):
+        the frames are those a freshly built background would give with `rng`."""
+        el, s = np.asarray(elements, dtype=np.float64), np.asarray(sines, dtype=np.float64)
+        key = hashlib.sha256(pickle.dumps((layer, el, s, window, band, float(c0), dim, float(aperture_radius))))
+        tpl = _CACHE.get(key.hexdigest())
+        if tpl is None:
+            tpl = cls(layer, el, s, window, band, c0, dim, aperture_radius, np.random.default_rng(0))
+            _CACHE[key.hexdigest()] = tpl
+            while len(_CACHE) > CACHED_BACKGROUNDS:
+                _CACHE.popitem(last=False)
+        _CACHE.move_to_end(key.hexdigest())
+        return tpl.fork(rng)
+
+    def fork(self, rng: np.random.Generator) -> DiffuseBackground:
+        """A background sharing this one's tables (read-only) with its own draws from `rng` (`restart`); the
+        copies share the beads' NUFFT plans, so they are used from one thread at a time."""
+        new = copy.copy(self)
+        if self.single is not None:
+            self.single.prepare()
+            new.single = copy.copy(self.single)
+        new.restart(rng)
+        return new
+
+    def restart(self, rng: np.random.Generator) -> None:
+        """Start the frames again from `rng` (as a background built with it), keeping the geometry and the
+        envelopes, which do not depend on the draws."""
+        self.rng = rng
+        if self.single is not None:
+            self.single.rng, self.single.state = np.random.default_rng(rng.integers(2**63)), None
+        self.state = self.block_state = self._frozen = None
+
     def _envelopes(
-        self, s_out: np.ndarray, sines: np.ndarray, cone: bool
+        self, s_out: np.ndarray, sines: np.ndarray, cone: bool, paired: bool = False
     ) -> tuple[list[np.ndarray], np.ndarray | None]:
         """Per sub-band, the noise's envelope √⟨M²⟩ of every pair (s_out[o], sines[θ]) on the baseband time
         grid (N_o, N_θ, n_bb) float32 — each direction's share of the halo and the weights' normalisation
-        included, times √(1 + cone) when `cone` — and the frame-to-frame correlation g₁ (None if frozen)."""
+        included, times √(1 + cone) when `cone` — and the frame-to-frame correlation g₁ (None if frozen).
+        `paired`: only the pairs (s_out[n], sines[n]), (n, 1, n_bb)."""
         layer, dim, c0, t = self.layer, self.dim, self.c0, self._t
         band = self.band
-        geo = HaloGeometry(layer, s_out, sines, self._aperture_radius, dim, c0) if layer.angular == "halo" else None
-        if geo is not None:
+        at_i = (slice(None), None) if paired else (None, slice(None))
+        geo = None
+        if layer.angular == "halo":
+            geo = HaloGeometry(layer, s_out, sines, self._aperture_radius, dim, c0, paired=paired)
             tau = geo.age(t, float(layer.ls_at(band.centre)))
         else:
-            t_on = layer.z_surface * (cosines(sines)[None, :] + cosines(s_out)[:, None]) / c0  # (N_o, N_θ)
+            t_on = layer.z_surface * (cosines(sines)[at_i] + cosines(s_out)[:, None]) / c0  # (N_o, N_θ)
             tau = (t[None, None, :] - t_on[:, :, None]).astype(np.float32)
         orders_from = 2 if layer.single_scattering == "field" else 1
         tab = np.linspace(0.0, max(float(tau.max()), 1e-9), 4096)
-        sep2 = np.sum((s_out[:, None, :] + sines[None, :, :]) ** 2, axis=2)  # |s_o + s_θ|², (N_o, N_θ)
+        sep2 = np.sum((s_out[:, None, :] + sines[at_i]) ** 2, axis=2)  # |s_o + s_θ|², (N_o, N_θ)
         envelopes = []
         for fc in self.centres:
             lay = layer.at_frequency(float(fc))
@@ -406,7 +476,7 @@ class DiffuseBackground:
 
     def multiple_spectrum(self) -> np.ndarray:
         """A_MS(o, θ, f) of the current noise state; the reciprocal block's outputs mix their lobes' pairs
-        (`reciprocity.ReciprocalBlock.mix`; its noise is drawn here the first time)."""
+        (`reciprocity.ReciprocalBlock.mix`; its noise is drawn here if it has not been yet)."""
         assert self.state is not None
         spec = self._shaped(self.state, self.envelopes)
         if self.block is not None:
@@ -423,6 +493,27 @@ class DiffuseBackground:
         state += fresh
         return state
 
+    def _advance(self) -> None:
+        """Draw the first noise state, or evolve it by one frame (the block's and the beads' alike)."""
+        if self.state is None:
+            self.state = self._noise()
+        elif self.g1 is not None:
+            self.state = self._evolve(self.state, self.g1, self._noise())
+            if self.block_state is not None and self._block_g1 is not None:
+                self.block_state = self._evolve(self.block_state, self._block_g1, self._block_noise())
+        if self.block is not None and self.block_state is None:
+            self.block_state = self._block_noise()
+        if self.single is not None:
+            self.single.advance()
+
+    def skip(self) -> None:
+        """Advance one frame without computing it: the same random draws as `next`, so the frames after
+        are those of a sequential run (a frozen medium computes its one realisation)."""
+        if self.g1 is None:
+            self.next()
+        else:
+            self._advance()
+
     def next(self) -> np.ndarray:
         """Advance one frame and return V (N_f, N_u, N_θ) complex64 on the band bins.
 
@@ -430,15 +521,9 @@ class DiffuseBackground:
         """
         if self._frozen is not None:
             return self._frozen
-        if self.state is None:
-            self.state = self._noise()
-        elif self.g1 is not None:
-            self.state = self._evolve(self.state, self.g1, self._noise())
-            if self.block_state is not None and self._block_g1 is not None:
-                self.block_state = self._evolve(self.block_state, self._block_g1, self._block_noise())
+        self._advance()
         out = self._project(self.multiple_spectrum() * self.weights[:, None, None])
         if self.single is not None:  # on its own, finer grid (single_scattering.output_grid)
-            self.single.advance()
             ss = self.single
             out += project_plane_waves(ss.spectrum(), self.freqs, self.c0, self.elements, ss.s_out, ss.axes, ss.keep)
         if self.g1 is None:

@@ -20,7 +20,7 @@ main lobe is the set of grid inputs a within ±M steps of s_θ per axis (M: the 
 array factor's first null at the band's lowest frequency). Their union A (P inputs) and its mirror
 O = −A (P outputs, all on the output grid) carry one noise T(o_i, a_j, t) with T_ij = T_ji (the reversed
 path's very amplitude), whose envelope is that of the pair (o_i, a_j) in the background's geometry
-(symmetric under the swap, and symmetrised exactly). Transmit θ's outputs in O are then
+(symmetric under the swap; computed once per pair i ≤ j, so exactly symmetric). Transmit θ's outputs in O are then
 
     A(o_i, θ, f) = Σ_j W_θj(f) T_ij(f),  W_θj(f) = c_θ w(o_j) B_f(a_j − s_θ)/β_f,
 
@@ -136,18 +136,13 @@ class ReciprocalBlock:
         self.n_pairs = int(self.pairs[0].size)
         self.diagonal = self.pairs[0] == self.pairs[1]  # (o_i, a_i) = (−a_i, a_i): exact retro-reflection
 
-    def pack(self, full: np.ndarray) -> np.ndarray:
-        """(P, P, …) → (n_pairs, 1, …): the symmetric part (x + xᵀ)/2 over the pairs i ≤ j (the block's
-        envelopes and g₁ are symmetric in exact arithmetic; this makes them so to the last bit)."""
-        i, j = self.pairs
-        return (0.5 * (full[i, j] + full[j, i]))[:, None].astype(full.dtype)
-
-    def envelopes(self, full: list[np.ndarray]) -> list[np.ndarray]:
-        """The block's packed envelopes (module doc): the ladder of each pair, and √2 on the diagonal, where
-        the exactly retro-reflected plane wave (−a_i, a_i) is its own reversed path (⟨|T_ii|²⟩ = 2 × ladder)."""
+    def envelopes(self, ladder: list[np.ndarray]) -> list[np.ndarray]:
+        """The block's packed envelopes (module doc) from the ladder envelope of each pair i ≤ j (n_pairs, 1, …):
+        √2 on the diagonal, where the exactly retro-reflected plane wave (−a_i, a_i) is its own reversed path
+        (⟨|T_ii|²⟩ = 2 × ladder). One envelope per packed pair serves T_ij and T_ji alike."""
         out = []
-        for env in full:
-            e = self.pack(env)
+        for env in ladder:
+            e = env.copy()
             e[self.diagonal] *= np.float32(np.sqrt(2.0))
             out.append(e)
         return out

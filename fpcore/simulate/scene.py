@@ -165,10 +165,9 @@ class Scenario:
         if self.layer is None:
             return None
         if self._diffuse is None:
-            ss = np.random.SeedSequence([self.seed, 1])
             ax, ay = self.probe.aperture
             radius = 0.5 * (np.sqrt(ax * ay) if self.dim == 3 and ay > 0 else ax)
-            self._diffuse = DiffuseBackground(
+            self._diffuse = DiffuseBackground.cached(
                 self.layer,
                 self.probe.positions,
                 self.sequence.sines,
@@ -177,9 +176,12 @@ class Scenario:
                 self.c0,
                 self.dim,
                 radius,
-                np.random.default_rng(ss),
+                self._background_rng(),
             )
         return self._diffuse
+
+    def _background_rng(self) -> np.random.Generator:
+        return np.random.default_rng(np.random.SeedSequence([self.seed, 1]))
 
     def _electronic_noise(self, rf: np.ndarray, rms: float, key: tuple[int, ...]) -> None:
         if rms > 0:
@@ -252,7 +254,8 @@ class Scenario:
         )
 
     def _reset(self) -> None:
-        self._diffuse = None
+        if self._diffuse is not None:  # frame 0's draws again; the envelopes are kept
+            self._diffuse.restart(self._background_rng())
         self._next = 0
 
     def frame(self, i: int) -> Acquisition:
@@ -262,9 +265,9 @@ class Scenario:
         if i < self._next:
             self._reset()
         bg = self._background()
-        while self._next < i:  # advance the background state
+        while self._next < i:  # advance the background state (its draws only: `DiffuseBackground.skip`)
             if bg is not None:
-                bg.next()
+                bg.skip()
             self._next += 1
         h = self.static_transfer().copy()
         for pl in self.placements.values():

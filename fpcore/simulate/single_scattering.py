@@ -191,11 +191,9 @@ class SingleScatteringField:
         post = (ph * weyl * self._t_r * self.taper[:, None, None]).astype(np.complex64)
         return depth_w.astype(np.complex64), plans, post
 
-    def spectrum(self) -> np.ndarray:
-        """A(o, θ, f) (N_o, N_θ, N_f) complex64 for the current grid (module doc)."""
-        if self.state is None:
-            self.advance()
-        assert self.state is not None
+    def prepare(self) -> None:
+        """Build what no frame changes (per sub-band depth profiles and NUFFT plans, the transmits' beams),
+        once; copies made after share them (`diffuse.DiffuseBackground.fork`; one thread at a time)."""
         if self._plans is None:
             self._plans = []
             for wts, fc in zip(self.blend, self.centres, strict=True):
@@ -205,6 +203,14 @@ class SingleScatteringField:
                     self._plans.append((idx, depth_w, plans, post * wts[idx].astype(np.float32)[None, None, :]))
         if self._beams is None:
             self._beams = np.stack([self.beam(i) for i in range(self.n_i)])
+
+    def spectrum(self) -> np.ndarray:
+        """A(o, θ, f) (N_o, N_θ, N_f) complex64 for the current grid (module doc)."""
+        if self.state is None:
+            self.advance()
+        assert self.state is not None
+        self.prepare()
+        assert self._plans is not None and self._beams is not None
         out = np.zeros((self.n_o, self.n_i, self.freqs.size), dtype=np.complex64)
         for idx, depth_w, plans, post in self._plans:
             base = self.state * depth_w[None, None, :]
