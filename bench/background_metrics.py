@@ -265,11 +265,12 @@ def confocal_background(
     dim: int,
     points: np.ndarray,
     band: Band | None = None,
+    per_realisation: bool = False,
 ) -> np.ndarray:
     """Confocal intensity ⟨|B(r)|²⟩ over realisations at `points` (N_p, 3), by delay-and-sum in the element
     basis, B(r) = Σ_{f,u,θ} w(f) V(f, u, θ) e^{+ik(|u − r| + a_θ·ρ + c_θ z)} — the focusing phase of
     docs/design.md §4.3 (paper eq. confocal, Supplementary S4 eq. mean_intensity) without apodization.
-    Returns (N_p,)."""
+    Returns (N_p,), or |B|² of each realisation (n_real, N_p) with `per_realisation`."""
     v = _check(v, freqs)
     w = spectral_weight(freqs, band)
     k = 2 * np.pi * np.asarray(freqs, dtype=np.float64) / c0
@@ -288,7 +289,7 @@ def confocal_background(
         e_in = (w[m] * np.exp(1j * k[m] * d_in)).astype(np.complex64)
         y = np.matmul(e_out[None], v[:, m])  # (n_real, N_p, N_θ)
         acc += np.sum(y * e_in[None], axis=2)
-    return np.mean(np.abs(acc) ** 2, axis=0)
+    return np.abs(acc) ** 2 if per_realisation else np.mean(np.abs(acc) ** 2, axis=0)
 
 
 def confocal_contrast_slope(
@@ -312,7 +313,9 @@ def confocal_contrast_slope(
     I_M(z): the background's confocal intensity (`confocal_background`) averaged over `n_lateral` points
     evenly spread in |x| ≤ half_width (and y = 0) at each depth. The slope is the least-squares line of
     ln C_I over the depths within `fit` = (z1, z2) (m, absolute depths below the array); the paper's law
-    C_I ∝ e^{−z/ℓ_s} gives slope = −1/ℓ_s. Returns slope (1/m), depths, ci, background, echo.
+    C_I ∝ e^{−z/ℓ_s} gives slope = −1/ℓ_s. Returns slope (1/m), its jackknife standard error over the
+    realisations `slope_se` (leave one out: √((n−1)/n Σ (s_i − s̄)²); NaN for one realisation), depths, ci,
+    background, echo.
     """
     z = np.asarray(depths, dtype=np.float64)
     e = np.asarray(echo, dtype=np.float64)
@@ -321,10 +324,21 @@ def confocal_contrast_slope(
     x = np.linspace(-half_width, half_width, n_lateral)
     xx, zz = np.meshgrid(x, z, indexing="ij")
     pts = np.stack([xx.ravel(), np.zeros(xx.size), zz.ravel()], axis=1)
-    bg = confocal_background(v, freqs, elements, sines, c0, dim, pts, band).reshape(x.size, z.size).mean(axis=0)
+    each = confocal_background(v, freqs, elements, sines, c0, dim, pts, band, per_realisation=True)
+    each = each.reshape(-1, x.size, z.size).mean(axis=1)  # (n_real, N_z)
+    bg = each.mean(axis=0)
     ci = e / bg
     sel = (z >= fit[0]) & (z <= fit[1])
     if sel.sum() < 3:
         raise ValueError(f"fit: expected at least 3 depths in {fit}, got {int(sel.sum())}")
-    slope = float(np.polyfit(z[sel], np.log(ci[sel]), 1)[0])
-    return {"slope": slope, "depths": z, "ci": ci, "background": bg, "echo": e}
+
+    def fitted(background: np.ndarray) -> float:
+        return float(np.polyfit(z[sel], np.log(e[sel] / background[sel]), 1)[0])
+
+    slope = fitted(bg)
+    n = each.shape[0]
+    se = float("nan")
+    if n > 1:
+        loo = np.array([fitted((bg * n - each[i]) / (n - 1)) for i in range(n)])
+        se = float(np.sqrt((n - 1) / n * np.sum((loo - loo.mean()) ** 2)))
+    return {"slope": slope, "slope_se": se, "depths": z, "ci": ci, "background": bg, "echo": e}

@@ -219,6 +219,11 @@ def report(res: dict[str, Any]) -> None:
             for tm, i in zip(marks, at, strict=True)
         )
     )
+    print(
+        f"  contrast slope × ℓ_s with its jackknife standard error over the realisations: "
+        f"FL {-fl['ci']['slope'] * s.ls_c:.2f} ± {fl['ci']['slope_se'] * s.ls_c:.2f}, "
+        f"model {-mod['ci']['slope'] * s.ls_c:.2f} ± {mod['ci']['slope_se'] * s.ls_c:.2f}"
+    )
     flat = [fl["cbs"]["flatness"], mod["cbs"]["flatness"]]
     print(
         f"  CBS peak over the mean outside the cone (separable envelope): FL {fl['cbs']['enhancement']:.2f}, "
