@@ -350,6 +350,21 @@ def test_halo_geometry_times_each_direction_by_its_ray() -> None:
     share = geo.share(np.full((so.shape[0], si.shape[0], 1), 5e-6, np.float32), lay.ls, 0.01, cbs=True)
     # (o, θ) = (−s_1, s_2) and its partner (−s_2, s_1): rows 3 + 1 and 3 + 2.
     assert share[3 + 1, 2, 0] == pytest.approx(share[3 + 2, 1, 0], rel=1e-5)
+    # paired=True computes only the pairs (s_out[n], sines[n]): the same numbers as the full table's entries,
+    # with the finite medium's walls too (the reciprocal block's envelopes, `DiffuseBackground`).
+    walled = ScatteringLayer(z_surface=5e-3, ls=1.8e-3, envelope="diffusion", cbs=True, angular="halo", width=12e-3)
+    o_idx, i_idx = np.array([0, 3, 4, 6, 6]), np.array([0, 0, 2, 1, 2])
+    for layer in (lay, walled):
+        full = HaloGeometry(layer, so, si, 2e-3, 3, C0)
+        pair = HaloGeometry(layer, so[o_idx], si[i_idx], 2e-3, 3, C0, paired=True)
+        tau_full, tau_pair = full.age(t, layer.ls), pair.age(t, layer.ls)
+        np.testing.assert_allclose(tau_pair[:, 0], tau_full[o_idx, i_idx], rtol=1e-6, atol=1e-12)
+        sh_full = full.share(tau_full, layer.ls, 0.01, cbs=True)
+        np.testing.assert_allclose(
+            pair.share(tau_pair, layer.ls, 0.01, cbs=True)[:, 0], sh_full[o_idx, i_idx], rtol=1e-5
+        )
+    with pytest.raises(ValueError, match="sines: expected 7 directions"):
+        HaloGeometry(lay, so, si, 2e-3, 3, C0, paired=True)
 
 
 @pytest.mark.parametrize("dim", [2, 3])
