@@ -423,3 +423,12 @@ def test_skipped_restarted_and_cached_backgrounds_give_the_sequential_frames() -
     np.testing.assert_array_equal(first.next(), ref[0])
     np.testing.assert_array_equal(first.next(), ref[1])
     np.testing.assert_array_equal(second.next(), ref[0])  # its own state, untouched by the first's frames
+    # Copies in two threads at once (they share the beads' NUFFT plans behind one lock): the same frames.
+    from concurrent.futures import ThreadPoolExecutor
+
+    forks = [DiffuseBackground.cached(*args, np.random.default_rng(3)) for _ in range(2)]
+    with ThreadPoolExecutor(2) as pool:
+        runs = list(pool.map(lambda b: [b.next() for _ in range(3)], forks))
+    for run in runs:
+        for got, want in zip(run, ref, strict=True):
+            np.testing.assert_array_equal(got, want)

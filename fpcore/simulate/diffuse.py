@@ -382,7 +382,7 @@ class DiffuseBackground:
 
     def fork(self, rng: np.random.Generator) -> DiffuseBackground:
         """A background sharing this one's tables (read-only) with its own draws from `rng` (`restart`); the
-        copies share the beads' NUFFT plans, so they are used from one thread at a time."""
+        copies share the beads' NUFFT plans behind one lock (`SingleScatteringField.prepare`)."""
         new = copy.copy(self)
         if self.single is not None:
             self.single.prepare()

@@ -28,6 +28,7 @@ update of the grid's white noise.
 
 from __future__ import annotations
 
+import threading
 from typing import TYPE_CHECKING
 
 import finufft
@@ -127,6 +128,7 @@ class SingleScatteringField:
         self.state: np.ndarray | None = None
         self._plans: list[tuple] | None = None  # per sub-band, built at the first spectrum
         self._beams: np.ndarray | None = None
+        self._plan_lock: threading.Lock | None = None  # made with the plans, shared with them (`prepare`)
 
     def beam(self, i: int) -> np.ndarray:
         """Transmit i's beam w(x − z tan θ) on the grid, (nx, ny, nz) float32: 1 inside, cosine edges."""
@@ -193,8 +195,10 @@ class SingleScatteringField:
 
     def prepare(self) -> None:
         """Build what no frame changes (per sub-band depth profiles and NUFFT plans, the transmits' beams),
-        once; copies made after share them (`diffuse.DiffuseBackground.fork`; one thread at a time)."""
+        once; copies made after share them (`diffuse.DiffuseBackground.fork`), and a lock they share too, so
+        that threads run one NUFFT at a time."""
         if self._plans is None:
+            self._plan_lock = threading.Lock()
             self._plans = []
             for wts, fc in zip(self.blend, self.centres, strict=True):
                 idx = np.flatnonzero(wts > 0)
@@ -210,13 +214,14 @@ class SingleScatteringField:
             self.advance()
         assert self.state is not None
         self.prepare()
-        assert self._plans is not None and self._beams is not None
+        assert self._plans is not None and self._beams is not None and self._plan_lock is not None
         out = np.zeros((self.n_o, self.n_i, self.freqs.size), dtype=np.complex64)
         for idx, depth_w, plans, post in self._plans:
             base = self.state * depth_w[None, None, :]
             for i, plan in enumerate(plans):
                 grid = base * self._beams[i]
-                vals = plan.execute(grid if self.dim == 3 else np.ascontiguousarray(grid[:, 0, :]))
+                with self._plan_lock:
+                    vals = plan.execute(grid if self.dim == 3 else np.ascontiguousarray(grid[:, 0, :]))
                 out[:, i, idx] += vals.reshape(self.n_o, idx.size) * post[:, i]
         return out
 
