@@ -12,6 +12,8 @@ else a Hann bump over the frequencies given, normalised so that 2 ∫ w df = 1 (
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from fpcore.simulate.waves import Band
@@ -24,6 +26,7 @@ __all__ = [
     "frequency_correlation_width",
     "cbs_enhancement",
     "confocal_contrast_slope",
+    "jackknife_se",
 ]
 
 
@@ -335,10 +338,24 @@ def confocal_contrast_slope(
     def fitted(background: np.ndarray) -> float:
         return float(np.polyfit(z[sel], np.log(e[sel] / background[sel]), 1)[0])
 
-    slope = fitted(bg)
-    n = each.shape[0]
-    se = float("nan")
-    if n > 1:
-        loo = np.array([fitted((bg * n - each[i]) / (n - 1)) for i in range(n)])
-        se = float(np.sqrt((n - 1) / n * np.sum((loo - loo.mean()) ** 2)))
-    return {"slope": slope, "slope_se": se, "depths": z, "ci": ci, "background": bg, "echo": e}
+    return {
+        "slope": fitted(bg),
+        "slope_se": jackknife_se(fitted, each),
+        "depths": z,
+        "ci": ci,
+        "background": bg,
+        "echo": e,
+    }
+
+
+def jackknife_se(statistic: Callable[[np.ndarray], float], each: np.ndarray) -> float:
+    """Jackknife standard error of statistic(mean of `each` over its first axis, the realisations): with s_i
+    the statistic of the mean leaving realisation i out, √((n−1)/n Σ (s_i − s̄)²) (Efron's delete-one
+    jackknife); NaN for one realisation."""
+    x = np.asarray(each, dtype=np.float64)
+    n = x.shape[0]
+    if n < 2:
+        return float("nan")
+    total = x.sum(axis=0)
+    loo = np.array([statistic((total - x[i]) / (n - 1)) for i in range(n)])
+    return float(np.sqrt((n - 1) / n * np.sum((loo - loo.mean()) ** 2)))

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -26,7 +27,11 @@ from typing import Any
 
 import numpy as np
 
-import fpcore
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import background_metrics as bm  # noqa: E402
+
+import fpcore  # noqa: E402
 import fpcore.simulate as sim
 from fpcore.acquisition import PlaneWaveSequence, Probe
 from fpcore.geometry import cosines
@@ -104,6 +109,34 @@ def _pw_confocal(
     return np.array([abs(np.sum(r * np.exp(1j * (kx * x + ky * y + kz * z)))) ** 2 for x, y, z in pixels])
 
 
+def _point_target_and_fog(
+    layer: sim.ScatteringLayer,
+    probe: Probe,
+    sines: np.ndarray,
+    freqs: np.ndarray,
+    c0: float,
+    spec: np.ndarray,
+    s_out: np.ndarray,
+    fogs: list[np.ndarray],
+    depths: np.ndarray,
+    dim: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """At each depth below the surface, on axis: the confocal intensity of a point target through the medium
+    (both legs, ℓ_ext(f)), of the same target in water, and the fog's mean confocal intensity per realisation
+    over 5 pixels in x (and 5 in y in 3-D) within ±2 mm. (N_z,), (N_z,), (N_z, n_real)."""
+    target, water, fog = [], [], []
+    xs = np.linspace(-2e-3, 2e-3, 5)
+    for d in depths:
+        r = np.array([0.0, 0.0, layer.z_surface + d])
+        h0 = sim.radiate_points(r[None], np.array([1e-3]), probe.positions, sines, freqs, c0, dim)
+        h = layer.attenuate(h0, r, 0.0, probe.positions, sines, freqs=freqs)
+        target.append(_pw_confocal(h, probe, sines, freqs, c0, spec, r[None], s_out)[0])
+        water.append(_pw_confocal(h0, probe, sines, freqs, c0, spec, r[None], s_out)[0])
+        pix = np.array([[x, 0.0, r[2]] for x in xs] + ([[0.0, y, r[2]] for y in xs] if dim == 3 else []))
+        fog.append([_pw_confocal(v, probe, sines, freqs, c0, spec, pix, s_out).mean() for v in fogs])
+    return np.array(target), np.array(water), np.array(fog)
+
+
 def contrast_vs_depth() -> None:
     section("3. Confocal contrast of a point target vs depth z − z_s = 1…5 ℓ_s (C_I ∝ exp(−z/ℓ_s), paper eq. (1))")
     print("  C_I = I_target(r) / ⟨I_background⟩ at the same depth (apodised plane-wave confocal, 4 realisations),")
@@ -134,19 +167,10 @@ def contrast_vs_depth() -> None:
                 for s in range(4)
             ]
             depths = np.arange(1, 6) * layer.ls
-            cs, spread = [], []
-            for d in depths:
-                r = np.array([0.0, 0.0, layer.z_surface + d])
-                h0 = sim.radiate_points(r[None], np.array([1e-3]), probe.positions, seq.sines, f, c0, dim)
-                h = layer.attenuate(h0, r, 0.0, probe.positions, seq.sines)
-                i_t = _pw_confocal(h, probe, seq.sines, f, c0, spec, r[None], s_out)[0]
-                spread.append(_pw_confocal(h0, probe, seq.sines, f, c0, spec, r[None], s_out)[0])
-                xs = np.linspace(-2e-3, 2e-3, 5)
-                pix = np.array([[x, 0.0, r[2]] for x in xs] + ([[0.0, y, r[2]] for y in xs] if dim == 3 else []))
-                i_m = np.mean([_pw_confocal(v, probe, seq.sines, f, c0, spec, pix, s_out).mean() for v in bgs])
-                cs.append(i_t / i_m)
+            i_t, in_water, fog = _point_target_and_fog(layer, probe, seq.sines, f, c0, spec, s_out, bgs, depths, dim)
+            cs = i_t / fog.mean(axis=1)
             raw = np.polyfit(depths, np.log(cs), 1)[0]
-            slope = np.polyfit(depths, np.log(np.array(cs) / np.array(spread)), 1)[0]
+            slope = np.polyfit(depths, np.log(cs / in_water), 1)[0]
             print(
                 f"  {dim}D, envelope={envelope:9s}: C_I ∝ exp(−z/ℓ_C), ℓ_C = {-1 / slope * 1e3:.2f} mm "
                 f"= {-1 / (slope * layer.ls):.2f} ℓ_s (input ℓ_s = 1.80 mm, ℓ_ext = {layer.l_ext * 1e3:.2f} mm); "
@@ -179,24 +203,14 @@ def contrast_vs_depth_scenario(n_real: int = 4, **layer_overrides: Any) -> float
     ]
     ls_c = float(lay.ls_at(band.centre))
     depths = np.arange(1, 6) * ls_c
-    echo, fog = [], []  # the target's intensity re the same target in water; the fog's, per realisation
-    xs = np.linspace(-2e-3, 2e-3, 5)
-    for d in depths:
-        r = np.array([0.0, 0.0, lay.z_surface + d])
-        h0 = sim.radiate_points(r[None], np.array([1e-3]), probe.positions, seq.sines, f, c0, 3)
-        h = lay.attenuate(h0, r, 0.0, probe.positions, seq.sines, freqs=f)
-        i_t = _pw_confocal(h, probe, seq.sines, f, c0, spec, r[None], s_out)[0]
-        echo.append(i_t / _pw_confocal(h0, probe, seq.sines, f, c0, spec, r[None], s_out)[0])
-        pix = np.array([[x, 0.0, r[2]] for x in xs] + [[0.0, y, r[2]] for y in xs])
-        fog.append([_pw_confocal(v, probe, seq.sines, f, c0, spec, pix, s_out).mean() for v in bgs])
-    e, m = np.array(echo), np.array(fog)  # (N_z,), (N_z, n_real)
+    i_t, in_water, m = _point_target_and_fog(lay, probe, seq.sines, f, c0, spec, s_out, bgs, depths, 3)
+    e = i_t / in_water  # the echo re the same target in water (the free-space range loss divided out)
 
     def slope(fog_mean: np.ndarray) -> float:
         return -float(np.polyfit(depths, np.log(e / fog_mean), 1)[0]) * ls_c
 
     k = slope(m.mean(axis=1))
-    loo = np.array([slope(np.delete(m, i, axis=1).mean(axis=1)) for i in range(n_real)])
-    se = float(np.sqrt((n_real - 1) / n_real * np.sum((loo - loo.mean()) ** 2)))
+    se = bm.jackknife_se(slope, m.T)
     ci = e / m.mean(axis=1)
     print(
         f"  3D, the sinking-sphere scenario's medium {layer_overrides or ''} (quick rig, {n_real} realisations): "

@@ -222,7 +222,7 @@ def test_background_is_reciprocal(single: str, angular: str) -> None:
     single scattering, on its own grid, is a sum of point echoes: `test_single_scattering_grid_gives_...`)."""
     bg, _, seq, _, _ = _small_2d(single_scattering=single, angular=angular)
     assert bg.block is not None and bg.block.steps[0] >= 1
-    bg.state = bg._noise()
+    bg._advance()  # the first frame's draws: the noise and the block's
     a = bg.multiple_spectrum() * bg.weights[:, None, None]
     mirror = -seq.sines
     c = cosines(seq.sines)
@@ -266,7 +266,7 @@ def test_coherent_backscattering_doubles_the_retro_intensity() -> None:
     for seed in range(6):
         bg, _, seq, _, _ = _small_2d()
         bg.rng = np.random.default_rng(seed)
-        bg.state = bg._noise()
+        bg._advance()  # the first frame's draws: the noise and the block's
         a = bg.multiple_spectrum() * bg.weights[:, None, None]
         b = np.stack([np.linspace(-0.3, 0.3, 25), np.zeros(25)], axis=1)
         p = np.mean(np.abs(_receive_beams(bg, a, np.arange(bg.n_o), np.concatenate([b, -seq.sines]))) ** 2, axis=2)

@@ -113,6 +113,12 @@ def halo_reach(z_s: float, sines: np.ndarray, aperture_radius: float, spread: fl
     return r / np.hypot(r, z_s)
 
 
+def _pair_axes(paired: bool) -> tuple[slice | None, ...]:
+    """The index that lays a per-input array out against per-output columns: (None, :) gives every pair
+    (o, θ) as an (N_o, N_θ) table; (:, None), with paired, only the pairs (s_out[n], sines[n]) as (n, 1)."""
+    return (slice(None), None) if paired else (None, slice(None))
+
+
 def a_g2(aperture_radius: float) -> float:
     """a_g² = 2a²/3: the Gaussian e^{−x²/a_g²} with the variance a²/3 of a uniform aperture |x| < a."""
     return 2.0 * aperture_radius**2 / 3.0
@@ -155,8 +161,7 @@ class HaloGeometry:
         so, si = np.asarray(s_out, float), np.asarray(sines, float)
         if paired and so.shape != si.shape:
             raise ValueError(f"sines: expected {so.shape[0]} directions, one per s_out (paired), got {si.shape[0]}")
-        # Every pair (o, θ) as an (N_o, N_θ) table, or only the pairs (s_out[n], sines[n]) as (n, 1) (paired).
-        self._at_i: tuple[slice | None, ...] = (slice(None), None) if paired else (None, slice(None))
+        self._at_i = _pair_axes(paired)
         c_o, c_i = cosines(so), cosines(si)
         rho_o = -landing(self.z_s, so)  # an output's ray through the array, traced back to the surface
         rho_i = landing(self.z_s, si)
@@ -332,7 +337,7 @@ class DiffuseBackground:
             self._block_env = blk.envelopes(env_b)  # (n_pairs, 1, n_bb): T_ij = T_ji
         self.single: SingleScatteringField | None = None
         if layer.single_scattering == "field":
-            ss_rng = np.random.default_rng(rng.integers(2**63))  # the beads' own stream (`restart`)
+            ss_rng = _beads_stream(rng)
             t_end = window.t0 + window.period
             # Deep enough that the echo at the band's lower −6 dB edge has fallen by e^{−12} in intensity.
             depth_max = max(min(0.5 * c0 * t_end - layer.z_surface, 6.0 * float(layer.l_ext_at(band.f_min))), 1e-3)
@@ -370,14 +375,14 @@ class DiffuseBackground:
         background of the same medium, rig, window and band when one is kept (`CACHED_BACKGROUNDS`):
         the frames are those a freshly built background would give with `rng`."""
         el, s = np.asarray(elements, dtype=np.float64), np.asarray(sines, dtype=np.float64)
-        key = hashlib.sha256(pickle.dumps((layer, el, s, window, band, float(c0), dim, float(aperture_radius))))
-        tpl = _CACHE.get(key.hexdigest())
+        rig = (layer, el, s, window, band, float(c0), dim, float(aperture_radius))
+        key = hashlib.sha256(pickle.dumps(rig)).hexdigest()
+        tpl = _CACHE.get(key)
         if tpl is None:
-            tpl = cls(layer, el, s, window, band, c0, dim, aperture_radius, np.random.default_rng(0))
-            _CACHE[key.hexdigest()] = tpl
+            tpl = _CACHE[key] = cls(*rig, np.random.default_rng(0))
             while len(_CACHE) > CACHED_BACKGROUNDS:
                 _CACHE.popitem(last=False)
-        _CACHE.move_to_end(key.hexdigest())
+        _CACHE.move_to_end(key)
         return tpl.fork(rng)
 
     def fork(self, rng: np.random.Generator) -> DiffuseBackground:
@@ -395,7 +400,7 @@ class DiffuseBackground:
         envelopes, which do not depend on the draws."""
         self.rng = rng
         if self.single is not None:
-            self.single.rng, self.single.state = np.random.default_rng(rng.integers(2**63)), None
+            self.single.rng, self.single.state = _beads_stream(rng), None
         self.state = self.block_state = self._frozen = None
 
     def _envelopes(
@@ -407,7 +412,7 @@ class DiffuseBackground:
         `paired`: only the pairs (s_out[n], sines[n]), (n, 1, n_bb)."""
         layer, dim, c0, t = self.layer, self.dim, self.c0, self._t
         band = self.band
-        at_i = (slice(None), None) if paired else (None, slice(None))
+        at_i = _pair_axes(paired)
         geo = None
         if layer.angular == "halo":
             geo = HaloGeometry(layer, s_out, sines, self._aperture_radius, dim, c0, paired=paired)
@@ -475,13 +480,12 @@ class DiffuseBackground:
         return spec
 
     def multiple_spectrum(self) -> np.ndarray:
-        """A_MS(o, θ, f) of the current noise state; the reciprocal block's outputs mix their lobes' pairs
-        (`reciprocity.ReciprocalBlock.mix`; its noise is drawn here if it has not been yet)."""
+        """A_MS(o, θ, f) of the current noise state (`_advance`); the reciprocal block's outputs mix their
+        lobes' pairs (`reciprocity.ReciprocalBlock.mix`)."""
         assert self.state is not None
         spec = self._shaped(self.state, self.envelopes)
         if self.block is not None:
-            if self.block_state is None:
-                self.block_state = self._block_noise()
+            assert self.block_state is not None
             spec[self.block.rows] = self.block.mix(self._shaped(self.block_state, self._block_env))
         return spec
 
@@ -529,6 +533,11 @@ class DiffuseBackground:
         if self.g1 is None:
             self._frozen, self.state, self.block_state = out, None, None
         return out
+
+
+def _beads_stream(rng: np.random.Generator) -> np.random.Generator:
+    """The beads' single-scattering field's own generator: the background generator's first draw."""
+    return np.random.default_rng(rng.integers(2**63))
 
 
 def project_plane_waves(
