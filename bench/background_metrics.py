@@ -26,6 +26,7 @@ __all__ = [
     "frequency_correlation_width",
     "cbs_enhancement",
     "confocal_contrast_slope",
+    "confocal_profile",
     "jackknife_se",
 ]
 
@@ -295,6 +296,32 @@ def confocal_background(
     return np.abs(acc) ** 2 if per_realisation else np.mean(np.abs(acc) ** 2, axis=0)
 
 
+def confocal_profile(
+    v: np.ndarray,
+    freqs: np.ndarray,
+    elements: np.ndarray,
+    sines: np.ndarray,
+    c0: float,
+    dim: int,
+    depths: np.ndarray,
+    half_width: float,
+    n_lateral: int = 9,
+    band: Band | None = None,
+) -> np.ndarray:
+    """|B|² of each realisation (n_real, N_z) at each depth, averaged over `n_lateral` points in |x| ≤ half_width
+    (2D, y = 0) or over the n_lateral × n_lateral patch |x|, |y| ≤ half_width (3D) (`confocal_background`)."""
+    z = np.asarray(depths, dtype=np.float64)
+    x = np.linspace(-half_width, half_width, n_lateral)
+    if dim == 3:
+        yy, xx, zz = np.meshgrid(x, x, z, indexing="ij")
+    else:
+        xx, zz = np.meshgrid(x, z, indexing="ij")
+        yy = np.zeros_like(xx)
+    pts = np.stack([xx.ravel(), yy.ravel(), zz.ravel()], axis=1)
+    each = confocal_background(v, freqs, elements, sines, c0, dim, pts, band, per_realisation=True)
+    return each.reshape(each.shape[0], -1, z.size).mean(axis=1)
+
+
 def confocal_contrast_slope(
     v: np.ndarray,
     freqs: np.ndarray,
@@ -313,22 +340,19 @@ def confocal_contrast_slope(
 
     echo(z): confocal intensity of a reference point reflector at depth z seen through the medium (any
     scale), e.g. |⟨ψ⟩(z)|⁴ from the coherent wave (paper S1) or the model's e^{−2z/ℓ_ext};
-    I_M(z): the background's confocal intensity (`confocal_background`) averaged over `n_lateral` points
-    evenly spread in |x| ≤ half_width (and y = 0) at each depth. The slope is the least-squares line of
-    ln C_I over the depths within `fit` = (z1, z2) (m, absolute depths below the array); the paper's law
-    C_I ∝ e^{−z/ℓ_s} gives slope = −1/ℓ_s. Returns slope (1/m), its jackknife standard error over the
-    realisations `slope_se` (leave one out: √((n−1)/n Σ (s_i − s̄)²); NaN for one realisation), depths, ci,
-    background, echo.
+    I_M(z): the background's confocal intensity averaged at each depth over `n_lateral` points in
+    |x| ≤ half_width (2D), or over the n_lateral × n_lateral patch |x|, |y| ≤ half_width (3D: the speckle
+    cells of both lateral axes; `confocal_profile`). The slope is the least-squares line of ln C_I over the
+    depths within `fit` = (z1, z2) (m, absolute depths below the array); the paper's law C_I ∝ e^{−z/ℓ_s}
+    gives slope = −1/ℓ_s. Returns slope (1/m), its jackknife standard error over the realisations
+    `slope_se` (leave one out: √((n−1)/n Σ (s_i − s̄)²); NaN for one realisation), depths, ci, background,
+    echo.
     """
     z = np.asarray(depths, dtype=np.float64)
     e = np.asarray(echo, dtype=np.float64)
     if e.shape != z.shape:
         raise ValueError(f"echo: expected one value per depth ({z.size}), got shape {e.shape}")
-    x = np.linspace(-half_width, half_width, n_lateral)
-    xx, zz = np.meshgrid(x, z, indexing="ij")
-    pts = np.stack([xx.ravel(), np.zeros(xx.size), zz.ravel()], axis=1)
-    each = confocal_background(v, freqs, elements, sines, c0, dim, pts, band, per_realisation=True)
-    each = each.reshape(-1, x.size, z.size).mean(axis=1)  # (n_real, N_z)
+    each = confocal_profile(v, freqs, elements, sines, c0, dim, z, half_width, n_lateral, band)
     bg = each.mean(axis=0)
     ci = e / bg
     sel = (z >= fit[0]) & (z <= fit[1])

@@ -228,6 +228,29 @@ def run(s: Setup, path: Path) -> dict[str, np.ndarray]:
     return out
 
 
+def single_scattering(s: Setup, data: dict[str, np.ndarray]) -> np.ndarray:
+    """K⁽¹⁾ (n_real, N_f, N_u, N_u) complex64: the first order of each saved realisation in the independent-
+    scattering approximation, each scatterer excited and re-radiating through the coherent wave,
+    K⁽¹⁾_uv = Σ_j G(u, r_j) t ⟨T⟩(z_j)² G(r_j, v) (paper S1: the ballistic wave ⟨ψ⟩ = T ψ_inc both ways).
+    The scatterers are drawn again from the setup's seed, in `run`'s order (checked against the saved counts);
+    K − K⁽¹⁾ is then the multiple scattering (with the first order's fluctuation about ⟨T⟩)."""
+    rng = np.random.default_rng(s.seed)
+    freqs, depths, el = data["freqs"], data["depths"], s.elements()
+    tbar = data["T"].mean(axis=0)  # (N_f, N_z)
+    out = np.empty(data["K"].shape, dtype=np.complex64)
+    for r in range(out.shape[0]):
+        pts = random_slab(rng, s.density, s.width, s.thickness, s.dim, z0=s.z_surface)
+        if pts.shape[0] != int(data["n_scatterers"][r]):
+            raise ValueError(f"realisation {r}: redrawn {pts.shape[0]} scatterers, saved {data['n_scatterers'][r]}")
+        d = _pairwise(el, pts, s.dim)
+        for m, f in enumerate(freqs):
+            k = 2 * np.pi * f / s.c0
+            tz = np.interp(pts[:, 2], depths, tbar[m].real) + 1j * np.interp(pts[:, 2], depths, tbar[m].imag)
+            g = green(k, d, s.dim)
+            out[r, m] = (g * (complex(s.strength(np.array(k))) * tz**2)) @ g.T
+    return out
+
+
 def load(path: Path) -> tuple[Setup, dict[str, np.ndarray]]:
     """The Setup and arrays of a saved reference."""
     with np.load(path) as z:

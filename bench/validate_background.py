@@ -21,7 +21,10 @@ four agreement figures of the issue, measured with bench/background_metrics.py o
    over the ladder extrapolated to b + a = 0 from a Gaussian fit over q_out–3 q_out (a small array sees the
    halo's profile through b + a, so the ladder is not flat; the peak over the flat mean is printed too);
 4. confocal contrast slope −d ln C_I/dz times ℓ_s(f_c), fitted from 1 ℓ_s to 5 ℓ_s below the surface
-   (or 1.5 ℓ_s above the slab's bottom if shallower) (1 within 20 %).
+   (or one pulse length c0/2B above the slab's bottom if shallower), the background averaged over a line
+   (2D) or a patch (3D) of half-width half the aperture's (1 within 20 %); the model's slope minus Foldy–Lax's
+   with their combined jackknife error, and Foldy–Lax's background split into its first scattering order
+   (`foldy_lax_reference.single_scattering`) and the rest, say what sets it.
 Writes out/bench/validate_background.png (rows: dimensions; columns: the four figures).
 """
 
@@ -114,11 +117,27 @@ def measure(
     fc = bm.frequency_correlation_width(v, freqs, gate=(t_on, s.t_end))
     q_out = max(0.2, 2 * s.c0 / s.f_c / (s.n_side * s.pitch))  # outside the cone and the aperture's λ/D
     cbs = bm.cbs_enhancement(v, freqs, s.elements(), sines, s.c0, s.dim, gate=(t_on + 5e-6, s.t_end), q_out=q_out)
-    z_fit = (s.z_surface + s.ls_c, s.z_surface + min(5 * s.ls_c, s.thickness - 1.5 * s.ls_c))
+    # The fit ends 5 ℓ_s deep, or one pulse length (c0/2B) above the slab's bottom: a confocal point shallower
+    # than that is reached at its time by no path that touched the bottom (causality), so the slab's depth
+    # does not bias the slope there (it ended 1.5 ℓ_s above the bottom before: 1–2.5 ℓ_s in 3-D, 1–3.5 now).
+    pulse = s.c0 / (2 * (s.band_hi - s.band_lo))
+    z_fit = (s.z_surface + s.ls_c, s.z_surface + min(5 * s.ls_c, s.thickness - pulse))
     ci = bm.confocal_contrast_slope(
         v, freqs, s.elements(), sines, s.c0, s.dim, depths, echo, z_fit, 0.5 * s.aperture_radius, band=s.band
     )
     return {"t": t, "env": env, "fc": fc, "cbs": cbs, "ci": ci, "z_fit": z_fit}
+
+
+def fl_orders(s: flr.Setup, data: dict[str, np.ndarray], v_fl: np.ndarray, sines: np.ndarray) -> dict[str, Any]:
+    """Foldy–Lax's confocal background (the slope's patch, realisation-averaged) split into the first order
+    K⁽¹⁾ (`foldy_lax_reference.single_scattering`) and the rest K − K⁽¹⁾, per depth."""
+    freqs = data["freqs"]
+    v1 = flr.plane_waves(flr.single_scattering(s, data), freqs, s.elements(), sines, s.c0, s.pitch, s.dim)
+    args = (freqs, s.elements(), sines, s.c0, s.dim, data["depths"], 0.5 * s.aperture_radius)
+    return {
+        "single": bm.confocal_profile(v1, *args, band=s.band).mean(axis=0),
+        "multiple": bm.confocal_profile(v_fl - v1, *args, band=s.band).mean(axis=0),
+    }
 
 
 def compare(
@@ -153,6 +172,7 @@ def compare(
     t_model = time.perf_counter() - t1
     depths = data["depths"]
     fl = measure(v_fl, s, sines, freqs, depths, fl_echo(data, freqs, s.band))
+    fl["orders"] = fl_orders(s, data, v_fl, sines)
     mod = measure(v_mod, s, sines, freqs, depths, model_echo(s, depths, freqs, layer_kw))
     # ℓ_s of the FL medium from its coherent wave at f_c (sanity: input 1.8 mm)
     m_c = int(np.argmin(np.abs(freqs - s.f_c)))
@@ -223,6 +243,27 @@ def report(res: dict[str, Any]) -> None:
         f"  contrast slope × ℓ_s with its jackknife standard error over the realisations: "
         f"FL {-fl['ci']['slope'] * s.ls_c:.2f} ± {fl['ci']['slope_se'] * s.ls_c:.2f}, "
         f"model {-mod['ci']['slope'] * s.ls_c:.2f} ± {mod['ci']['slope_se'] * s.ls_c:.2f}"
+    )
+    diff = fl["ci"]["slope"] - mod["ci"]["slope"]
+    sigma = np.hypot(fl["ci"]["slope_se"], mod["ci"]["slope_se"])
+    print(
+        f"  contrast slope × ℓ_s, model − FL: {diff * s.ls_c:+.2f} ± {sigma * s.ls_c:.2f} ({abs(diff) / sigma:.1f} σ)"
+    )
+    z, z_fit, o = res["data"]["depths"], fl["z_fit"], fl["orders"]
+    sel = (z >= z_fit[0]) & (z <= z_fit[1])
+
+    def fall(y: np.ndarray) -> float:
+        return -float(np.polyfit(z[sel], np.log(y[sel]), 1)[0]) * s.ls_c
+
+    at = [int(np.argmin(np.abs(z - s.z_surface - m * s.ls_c))) for m in (1, 2, 3) if m * s.ls_c <= s.thickness]
+    share = o["single"] / (o["single"] + o["multiple"])
+    echo = fl["ci"]["echo"]
+    print(
+        "  FL background by order, first order's share at "
+        + ", ".join(f"{(z[i] - s.z_surface) / s.ls_c:.0f} ℓ_s: {share[i]:.2f}" for i in at)
+        + f"; fall × ℓ_s over the fit: echo {fall(echo):.2f}, first order {fall(o['single']):.2f}, the rest "
+        f"{fall(o['multiple']):.2f}, all {fall(fl['ci']['background']):.2f} (contrast over the rest alone: "
+        f"{fall(echo) - fall(o['multiple']):.2f})"
     )
     flat = [fl["cbs"]["flatness"], mod["cbs"]["flatness"]]
     print(
