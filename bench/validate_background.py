@@ -6,6 +6,7 @@
     .venv/bin/python bench/validate_background.py --layer cbs=True --layer single_scattering=field --match-dispersion
     .venv/bin/python bench/validate_background.py --layer envelope=diffusion --layer cbs=True \
         --layer single_scattering=field --match-dispersion --slab        # the README's comparison
+    .venv/bin/python bench/validate_background.py --reference out/bench/fl_reference_2d_12el.npz ...  # another rig
 
 The Foldy–Lax reference (bench/foldy_lax_reference.py, cached in out/bench/) and the model are built
 for the same geometry: array, finite-aperture plane-wave transmits, band, time window, a scattering
@@ -147,8 +148,11 @@ def compare(
     layer_kw: dict[str, Any],
     match_dispersion: bool = False,
     slab: bool = False,
+    reference: Path | None = None,
 ) -> dict[str, Any]:
-    path = flr.default_path(dim, quick)
+    path = reference or flr.default_path(dim, quick)
+    if reference is not None and not path.exists():
+        raise SystemExit(f"--reference: {path} does not exist (make it with bench/foldy_lax_reference.py --out)")
     if not path.exists():
         print(f"{path} missing: running the Foldy–Lax reference")
         flr.run(flr.setup_for(dim, quick), path)
@@ -372,6 +376,12 @@ def main(argv: list[str] | None = None) -> int:
         help="cap on the single scattering's output directions in 3D (default: the simulator's, "
         "fpcore.simulate.single_scattering.MAX_DIRECTIONS; 0: none, the grid its margin asks for)",
     )
+    ap.add_argument(
+        "--reference",
+        default=None,
+        help="a Foldy–Lax reference file (foldy_lax_reference.py --out), instead of the default one; its setup "
+        "sets the dimension",
+    )
     ap.add_argument("--png", default="out/bench/validate_background.png")
     args = ap.parse_args(argv)
     try:
@@ -391,8 +401,10 @@ def main(argv: list[str] | None = None) -> int:
     print(f"model: fpcore.simulate.medium at {model_commit()}; layer options {layer_kw or 'none (defaults)'}")
     print(f"  single scattering: at most {ss_mod.MAX_DIRECTIONS} output directions in 3D")
     results = []
-    for dim in (2, 3) if args.dim == "both" else (int(args.dim),):
-        res = compare(dim, args.quick, args.model_realisations, layer_kw, args.match_dispersion, args.slab)
+    ref = Path(args.reference) if args.reference else None
+    dims = (flr.load(ref)[0].dim,) if ref and ref.exists() else (2, 3) if args.dim == "both" else (int(args.dim),)
+    for dim in dims:
+        res = compare(dim, args.quick, args.model_realisations, layer_kw, args.match_dispersion, args.slab, ref)
         report(res)
         results.append(res)
     plot(results, Path(args.png))
