@@ -124,9 +124,15 @@ def measure(
     pulse = s.c0 / (2 * (s.band_hi - s.band_lo))
     z_fit = (s.z_surface + s.ls_c, s.z_surface + min(5 * s.ls_c, s.thickness - pulse))
     ci = bm.confocal_contrast_slope(
-        v, freqs, s.elements(), sines, s.c0, s.dim, depths, echo, z_fit, 0.5 * s.aperture_radius, band=s.band
+        v, freqs, s.elements(), sines, s.c0, s.dim, depths, echo, z_fit, contrast_half_width(s), band=s.band
     )
     return {"t": t, "env": env, "fc": fc, "cbs": cbs, "ci": ci, "z_fit": z_fit}
+
+
+def contrast_half_width(s: flr.Setup) -> float:
+    """Half-width of the line (2D) or patch (3D) the contrast's background is averaged over: half the
+    insonified half-width, inside the aperture."""
+    return 0.5 * s.aperture_radius
 
 
 def fl_orders(s: flr.Setup, data: dict[str, np.ndarray], v_fl: np.ndarray, sines: np.ndarray) -> dict[str, Any]:
@@ -134,7 +140,7 @@ def fl_orders(s: flr.Setup, data: dict[str, np.ndarray], v_fl: np.ndarray, sines
     K⁽¹⁾ (`foldy_lax_reference.single_scattering`) and the rest K − K⁽¹⁾, per depth."""
     freqs = data["freqs"]
     v1 = flr.plane_waves(flr.single_scattering(s, data), freqs, s.elements(), sines, s.c0, s.pitch, s.dim)
-    args = (freqs, s.elements(), sines, s.c0, s.dim, data["depths"], 0.5 * s.aperture_radius)
+    args = (freqs, s.elements(), sines, s.c0, s.dim, data["depths"], contrast_half_width(s))
     return {
         "single": bm.confocal_profile(v1, *args, band=s.band).mean(axis=0),
         "multiple": bm.confocal_profile(v_fl - v1, *args, band=s.band).mean(axis=0),
@@ -150,13 +156,14 @@ def compare(
     slab: bool = False,
     reference: Path | None = None,
 ) -> dict[str, Any]:
+    """Foldy–Lax (`reference`, or the default file of `dim`, made if missing) against the model on its setup;
+    the reference's own setup sets the dimension."""
     path = reference or flr.default_path(dim, quick)
-    if reference is not None and not path.exists():
-        raise SystemExit(f"--reference: {path} does not exist (make it with bench/foldy_lax_reference.py --out)")
     if not path.exists():
         print(f"{path} missing: running the Foldy–Lax reference")
         flr.run(flr.setup_for(dim, quick), path)
     s, data = flr.load(path)
+    dim = s.dim
     freqs = data["freqs"]
     if not np.allclose(freqs, s.freqs()):
         raise SystemExit(f"{path}: frequencies differ from the setup's window (stale cache? delete it)")
@@ -248,11 +255,9 @@ def report(res: dict[str, Any]) -> None:
         f"FL {-fl['ci']['slope'] * s.ls_c:.2f} ± {fl['ci']['slope_se'] * s.ls_c:.2f}, "
         f"model {-mod['ci']['slope'] * s.ls_c:.2f} ± {mod['ci']['slope_se'] * s.ls_c:.2f}"
     )
-    diff = fl["ci"]["slope"] - mod["ci"]["slope"]
-    sigma = np.hypot(fl["ci"]["slope_se"], mod["ci"]["slope_se"])
-    print(
-        f"  contrast slope × ℓ_s, model − FL: {diff * s.ls_c:+.2f} ± {sigma * s.ls_c:.2f} ({abs(diff) / sigma:.1f} σ)"
-    )
+    k_fl, k_mod = (-r["ci"]["slope"] * s.ls_c for r in (fl, mod))  # −d ln C_I/dz × ℓ_s
+    sigma = float(np.hypot(fl["ci"]["slope_se"], mod["ci"]["slope_se"])) * s.ls_c
+    print(f"  contrast slope × ℓ_s, model − FL: {k_mod - k_fl:+.2f} ± {sigma:.2f} ({abs(k_mod - k_fl) / sigma:.1f} σ)")
     z, z_fit, o = res["data"]["depths"], fl["z_fit"], fl["orders"]
     sel = (z >= z_fit[0]) & (z <= z_fit[1])
 
@@ -384,6 +389,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--png", default="out/bench/validate_background.png")
     args = ap.parse_args(argv)
+    ref = Path(args.reference) if args.reference else None
+    if ref is not None and not ref.exists():
+        print(f"--reference: {ref} does not exist (make it with bench/foldy_lax_reference.py --out)", file=sys.stderr)
+        return 2
     try:
         layer_kw = parse_layer(args.layer)
         ScatteringLayer(z_surface=5e-3, ls=1.8e-3, **layer_kw)
@@ -401,8 +410,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"model: fpcore.simulate.medium at {model_commit()}; layer options {layer_kw or 'none (defaults)'}")
     print(f"  single scattering: at most {ss_mod.MAX_DIRECTIONS} output directions in 3D")
     results = []
-    ref = Path(args.reference) if args.reference else None
-    dims = (flr.load(ref)[0].dim,) if ref and ref.exists() else (2, 3) if args.dim == "both" else (int(args.dim),)
+    # with --reference, one comparison: its file's setup sets the dimension (`compare`)
+    dims = (2,) if ref is not None else (2, 3) if args.dim == "both" else (int(args.dim),)
     for dim in dims:
         res = compare(dim, args.quick, args.model_realisations, layer_kw, args.match_dispersion, args.slab, ref)
         report(res)
