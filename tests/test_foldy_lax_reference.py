@@ -73,3 +73,17 @@ def test_confocal_profile_3d_is_the_patch_mean() -> None:
     each = bm.confocal_background(v, freqs, el, sines, 1500.0, 3, pts, per_realisation=True)
     want = each.reshape(2, 9, 2).mean(axis=1)
     np.testing.assert_allclose(got, want, rtol=1e-6)
+
+
+def test_command_line_overrides_the_slab_in_mm() -> None:
+    args = flr.parser().parse_args(["--dim", "3", "--thickness", "10", "--width", "15", "--realisations", "2"])
+    s = flr.configured(3, args)
+    base = flr.setup_for(3, quick=False)
+    assert (s.thickness, s.width, s.n_real) == pytest.approx((10e-3, 15e-3, 2))
+    assert (s.n_side, s.ls_c, s.dim) == (base.n_side, base.ls_c, 3)
+
+
+@pytest.mark.parametrize("flag", ["--thickness", "--width"])
+def test_command_line_refuses_a_non_positive_length(flag, capsys) -> None:
+    assert flr.main(["--dim", "3", flag, "0"]) == 2
+    assert f"{flag}: expected a length in mm > 0, got 0.0" in capsys.readouterr().err
