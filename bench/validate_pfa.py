@@ -12,7 +12,8 @@ suspension's surface included, no depth window): per frame and target, detected 
 within 1 mm of the truth.
 
     python bench/validate_pfa.py                 # quick sizes; 3-D null set of 48 maps (minutes)
-    python bench/validate_pfa.py --iid 500 --maps2d 480 --maps3d 320 --power 32   # README figures (~30 min)
+    python bench/validate_pfa.py --seed0 20000 --iid 300 --maps2d 1000 --maps3d 0 --power 0      # README, 2-D (20 min)
+    python bench/validate_pfa.py --seed0 20000 --iid 0 --maps2d 0 --maps3d 300 --power 16        # README, 3-D (51 min)
 
 The fog maps are one per simulated medium by default (``--frames-per-seed 1``): frames of one medium
 are correlated (the fog decorrelates over a few frames, so a fog feature that fires fires on several), and
