@@ -346,7 +346,7 @@ def confocal_contrast_slope(
     depths within `fit` = (z1, z2) (m, absolute depths below the array); the paper's law C_I ∝ e^{−z/ℓ_s}
     gives slope = −1/ℓ_s. Returns slope (1/m), its jackknife standard error over the realisations
     `slope_se` (leave one out: √((n−1)/n Σ (s_i − s̄)²); NaN for one realisation), depths, ci, background,
-    echo.
+    echo, and `each`, the per-realisation background profiles (`slope_over` refits them on other depths).
     """
     z = np.asarray(depths, dtype=np.float64)
     e = np.asarray(echo, dtype=np.float64)
@@ -369,7 +369,22 @@ def confocal_contrast_slope(
         "ci": ci,
         "background": bg,
         "echo": e,
+        "each": each,
     }
+
+
+def slope_over(ci: dict, fit: tuple[float, float]) -> tuple[float, float]:
+    """(slope, jackknife standard error) of ln C_I refitted over the depths within `fit` = (z1, z2), from a
+    `confocal_contrast_slope` result: the law's rate over another depth range (the exact one is a depth mean)."""
+    z, e, each = ci["depths"], ci["echo"], ci["each"]
+    sel = (z >= fit[0]) & (z <= fit[1])
+    if sel.sum() < 3:
+        raise ValueError(f"fit: expected at least 3 depths in {fit}, got {int(sel.sum())}")
+
+    def fitted(background: np.ndarray) -> float:
+        return float(np.polyfit(z[sel], np.log(e[sel] / background[sel]), 1)[0])
+
+    return fitted(each.mean(axis=0)), jackknife_se(fitted, each)
 
 
 def jackknife_se(statistic: Callable[[np.ndarray], float], each: np.ndarray) -> float:

@@ -111,6 +111,12 @@ def test_confocal_contrast_slope_of_an_attenuated_speckle() -> None:
     )
     assert got["slope"] == pytest.approx(-2 / ell, rel=0.15)
     assert 0 < got["slope_se"] < 0.15 * 2 / ell  # the jackknife error over 4 realisations: finite, and small here
+    # refitted over the same depths, slope_over is the slope; over a sub-range, the same law within its error
+    assert bm.slope_over(got, (z[0], z[-1])) == pytest.approx((got["slope"], got["slope_se"]), rel=1e-12)
+    part, part_se = bm.slope_over(got, (z[0], z[9]))
+    assert part == pytest.approx(-2 / ell, rel=0.25) and part_se > 0
+    with pytest.raises(ValueError, match="fit: expected at least 3 depths"):
+        bm.slope_over(got, (z[0], z[1]))
 
 
 def test_bad_input_names_the_field() -> None:
