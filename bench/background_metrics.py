@@ -111,6 +111,19 @@ def time_envelope(
     return t, 0.5 * np.mean(np.abs(m) ** 2, axis=(0, 2, 3))
 
 
+def energy_before(t: np.ndarray, env: np.ndarray, t_cut: float) -> float:
+    """Share of the record's energy Σ⟨r²⟩ that arrives before t_cut (s), from `time_envelope`'s (t, intensity).
+    Before the earliest path through the medium it is what the record's period wraps round from late times
+    (1/δf) plus whatever a model puts there that no path allows (its precursor)."""
+    t, env = np.asarray(t, dtype=np.float64), np.asarray(env, dtype=np.float64)
+    if t.shape != env.shape or t.ndim != 1:
+        raise ValueError(f"env: expected the shape of t {t.shape}, got {env.shape}")
+    total = float(env.sum())
+    if not total > 0:
+        raise ValueError("env: expected a positive total energy")
+    return float(env[t < t_cut].sum()) / total
+
+
 def frequency_correlation_width(
     v: np.ndarray, freqs: np.ndarray, gate: tuple[float, float], taper: float = 1e-6, central: float = 0.5
 ) -> dict[str, np.ndarray | float]:

@@ -55,6 +55,23 @@ def test_time_envelope_of_a_delayed_pulse_and_of_a_decay() -> None:
     assert -1 / slope == pytest.approx(tau, rel=0.1)
 
 
+def test_energy_before_a_delayed_echo_is_its_pulse_tail_only() -> None:
+    """A unit echo at t1: its pulse's tail holds < 1 % of the energy a microsecond before it, < 0.01 % two
+    microseconds before; half by t1, all after;
+    a mismatched envelope is refused naming the field."""
+    band = Band(1.8e6, 2.6e6)
+    freqs = np.arange(1.41e6, 2.99e6, DF)
+    t1 = 30e-6
+    v = np.exp(-2j * np.pi * freqs * t1)[None, :, None, None]
+    t, inten = bm.time_envelope(v, freqs, band)
+    assert bm.energy_before(t, inten, t1 - 1e-6) < 1e-2
+    assert bm.energy_before(t, inten, t1 - 2e-6) < 1e-4
+    assert bm.energy_before(t, inten, t1) == pytest.approx(0.5, abs=0.05)
+    assert bm.energy_before(t, inten, t1 + 2e-6) > 0.999
+    with pytest.raises(ValueError, match="env"):
+        bm.energy_before(t, inten[:-1], t1)
+
+
 def _array_data(symmetric: bool, n_real: int = 24) -> tuple[np.ndarray, ...]:
     """V(f, u, a) = c_a Σ_v K(u, v) e^{−ik a·v} from random element matrices K (symmetric or not)."""
     rng = np.random.default_rng(3)
