@@ -29,9 +29,9 @@ four agreement figures of the issue, measured with bench/background_metrics.py o
    (2D) or a patch (3D) of half-width half the aperture's (1 within 20 %); the model's slope minus Foldy–Lax's
    with their combined jackknife error, and Foldy–Lax's background split into its first scattering order
    (`foldy_lax_reference.single_scattering`) and the rest, say what sets it.
-Also printed: the share of each record's energy before the surface echo less PRECURSOR_LEAD, which no path
-reaches (Foldy–Lax: the period's wrap-round; the model: that plus the speckle's aliasing where its output grid
-is capped, `--ss-directions`).
+Also printed: the CBS enhancement by the paths' age (gates CBS_AGES after the surface echo), and the share of
+each record's energy before the surface echo less PRECURSOR_LEAD, which no path reaches (Foldy–Lax: the period's
+wrap-round; the model: that plus the speckle's aliasing where its output grid is capped, `--ss-directions`).
 Writes out/bench/validate_background.png (rows: dimensions; columns: the four figures).
 """
 
@@ -60,6 +60,8 @@ from fpcore.simulate.medium import DiffuseBackground, ScatteringLayer  # noqa: E
 DEPTH_RANGES = ((1.0, 2.5), (1.0, 3.5), (1.0, 5.0), (2.5, 5.0), (3.0, 5.0))
 
 
+#: Gates after the surface echo (µs) over which the CBS enhancement is also measured, where the record reaches.
+CBS_AGES = ((5.0, 10.0), (10.0, 20.0), (20.0, 30.0))
 #: How long before the normal-incidence surface echo a path through the medium can first arrive (s): half a pulse
 #: (the band's Hann support, ~1.6 MHz) and the lead of an oblique transmit over the slab's near edge (~0.7 µs).
 PRECURSOR_LEAD = 1.5e-6
@@ -133,6 +135,16 @@ def measure(
     fc = bm.frequency_correlation_width(v, freqs, gate=(t_on, s.t_end))
     q_out = max(0.2, 2 * s.c0 / s.f_c / (s.n_side * s.pitch))  # outside the cone and the aperture's λ/D
     cbs = bm.cbs_enhancement(v, freqs, s.elements(), sines, s.c0, s.dim, gate=(t_on + 5e-6, s.t_end), q_out=q_out)
+    # The same by the paths' age (the figure above is weighted by the early, brightest part of its gate).
+    cbs_age = {
+        (a, b): float(
+            bm.cbs_enhancement(
+                v, freqs, s.elements(), sines, s.c0, s.dim, gate=(t_on + a * 1e-6, t_on + b * 1e-6), q_out=q_out
+            )["enhancement_ladder"]
+        )
+        for a, b in CBS_AGES
+        if t_on + b * 1e-6 <= s.t_end
+    }
     # The fit ends 5 ℓ_s deep, or one pulse length (c0/2B) above the slab's bottom: a confocal point shallower
     # than that is reached at its time by no path that touched the bottom (causality), so the slab's depth
     # does not bias the slope there (it ended 1.5 ℓ_s above the bottom before: 1–2.5 ℓ_s in 3-D, 1–3.5 now).
@@ -141,7 +153,7 @@ def measure(
     ci = bm.confocal_contrast_slope(
         v, freqs, s.elements(), sines, s.c0, s.dim, depths, echo, z_fit, contrast_half_width(s), band=s.band
     )
-    return {"t": t, "env": env, "fc": fc, "cbs": cbs, "ci": ci, "z_fit": z_fit}
+    return {"t": t, "env": env, "fc": fc, "cbs": cbs, "cbs_age": cbs_age, "ci": ci, "z_fit": z_fit}
 
 
 def contrast_half_width(s: flr.Setup) -> float:
@@ -315,6 +327,14 @@ def report(res: dict[str, Any]) -> None:
         f"model {mod['cbs']['enhancement']:.2f}; the ladder extrapolated to q = 0: FL {fl['cbs']['ladder0']:.2f}, "
         f"model {mod['cbs']['ladder0']:.2f}"
     )
+    if fl["cbs_age"]:
+        print(
+            "  CBS enhancement over the ladder by age after the surface echo: "
+            + "; ".join(
+                f"{a:g}–{b:g} µs FL {fl['cbs_age'][(a, b)]:.2f}, model {mod['cbs_age'][(a, b)]:.2f}"
+                for a, b in fl["cbs_age"]
+            )
+        )
     print(
         f"  CBS profile rms off 1 outside the cone: FL {flat[0]:.2f}, model {flat[1]:.2f}"
         + ("  (> 0.1: envelope not separable, the enhancement is not a cone height)" if max(flat) > 0.1 else "")
