@@ -177,6 +177,53 @@ def _out_grid(sines: np.ndarray, dim: int, extent: float) -> np.ndarray:
     return b[np.hypot(b[:, 0], b[:, 1]) < 0.95]  # propagating directions only
 
 
+def plane_wave_outputs(
+    v: np.ndarray, freqs: np.ndarray, elements: np.ndarray, out_sines: np.ndarray, c0: float
+) -> np.ndarray:
+    """R(f, b, a) = Σ_u V(f, u, a) e^{+ik b·u} (`cbs_enhancement`'s projection) for outputs b in `out_sines`:
+    (n_real, N_f, N_b, N_θ) complex64."""
+    v = _check(v, freqs)
+    k = 2 * np.pi * np.asarray(freqs, dtype=np.float64) / c0
+    ph = np.asarray(out_sines, dtype=np.float64)[:, :2] @ np.asarray(elements, dtype=np.float64)[:, :2].T
+    out = np.empty((v.shape[0], k.size, ph.shape[0], v.shape[3]), dtype=np.complex64)
+    for m in range(k.size):
+        out[:, m] = np.matmul(np.exp(1j * k[m] * ph).astype(np.complex64)[None], v[:, m])
+    return out
+
+
+def memory_correlation(r: np.ndarray, sines: np.ndarray, steps: tuple[int, ...] = (1, 2, 4)) -> dict[int, float]:
+    """The angular memory effect: the correlation of the plane-wave matrix under a common tilt of its input and
+    output by m steps of the transmit lattice along x,
+
+        C(m) = |Σ R(b + mδ, a + mδ) R*(b, a)| / √(Σ|R(b + mδ, a + mδ)|² Σ|R(b, a)|²),
+
+    over the pairs whose tilted partner is on the lattice, frequencies and realisations. r: (n_real, N_f, N_θ,
+    N_θ) with outputs on the transmits' own sines `sines` (N_θ, 2). 1 for a shift-invariant matrix R(b − a);
+    ≈ 0 for independent entries (≈ 1/√n for n terms)."""
+    r = np.asarray(r)
+    s = np.asarray(sines, dtype=np.float64)
+    n = s.shape[0]
+    if r.ndim != 4 or r.shape[2:] != (n, n):
+        raise ValueError(f"r: expected shape (n_real, N_f, {n}, {n}), got {r.shape}")
+    ux = np.unique(np.round(s[:, 0], 12))
+    if ux.size < 2:
+        raise ValueError("sines: expected at least two distinct x sines")
+    dx = float(np.min(np.diff(ux)))
+    out: dict[int, float] = {}
+    for m in steps:
+        target = s + np.array([m * dx, 0.0])
+        dist = np.linalg.norm(s[None, :, :] - target[:, None, :], axis=2)
+        partner = np.argmin(dist, axis=1)
+        ok = np.flatnonzero(dist[np.arange(n), partner] < 1e-6 * max(dx, 1e-12))
+        if ok.size == 0:
+            continue
+        a = r[:, :, ok[:, None], ok[None, :]]
+        b = r[:, :, partner[ok][:, None], partner[ok][None, :]]
+        num = abs(np.sum(b * np.conj(a)))
+        out[m] = float(num / np.sqrt(np.sum(np.abs(a) ** 2) * np.sum(np.abs(b) ** 2)))
+    return out
+
+
 def cbs_enhancement(
     v: np.ndarray,
     freqs: np.ndarray,

@@ -29,8 +29,9 @@ four agreement figures of the issue, measured with bench/background_metrics.py o
    (2D) or a patch (3D) of half-width half the aperture's (1 within 20 %); the model's slope minus Foldy–Lax's
    with their combined jackknife error, and Foldy–Lax's background split into its first scattering order
    (`foldy_lax_reference.single_scattering`) and the rest, say what sets it.
-Also printed: the CBS enhancement by the paths' age (gates CBS_AGES after the surface echo), and the share of
-each record's energy before the surface echo less PRECURSOR_LEAD, which no path reaches (Foldy–Lax: the period's
+Also printed: the CBS enhancement and the memory effect (`background_metrics.memory_correlation`) by the paths'
+age (gates after the surface echo), the confocal background and echo model/FL by depth, and the share of
+each record's energy before the surface echo less `precursor_lead`, which no path reaches (Foldy–Lax: the period's
 wrap-round; the model: that plus the speckle's aliasing where its output grid is capped, `--ss-directions`).
 Writes out/bench/validate_background.png (rows: dimensions; columns: the four figures).
 """
@@ -56,15 +57,25 @@ import fpcore.simulate.single_scattering as ss_mod  # noqa: E402
 from fpcore.simulate.medium import DiffuseBackground, ScatteringLayer  # noqa: E402
 
 #: Depth ranges below the surface (in ℓ_s(f_c)) over which the contrast slope is also refitted, where the fit
-#: reaches them: the exact rate is a mean over depth (2-D Foldy–Lax: 0.70/ℓ_s over 1–2.5, 1.45 over 3–5).
+#: reaches them: the exact rate is a mean over depth (2-D Foldy–Lax: 0.55/ℓ_s over 1–2.5, 1.42 over 3–5).
 DEPTH_RANGES = ((1.0, 2.5), (1.0, 3.5), (1.0, 5.0), (2.5, 5.0), (3.0, 5.0))
 
 
 #: Gates after the surface echo (µs) over which the CBS enhancement is also measured, where the record reaches.
 CBS_AGES = ((5.0, 10.0), (10.0, 20.0), (20.0, 30.0))
-#: How long before the normal-incidence surface echo a path through the medium can first arrive (s): half a pulse
-#: (the band's Hann support, ~1.6 MHz) and the lead of an oblique transmit over the slab's near edge (~0.7 µs).
-PRECURSOR_LEAD = 1.5e-6
+#: Gates after the surface echo (µs) and tilts (transmit steps) of the memory-effect correlation.
+MEMORY_AGES = ((3.0, 6.0), (6.0, 12.0), (12.0, 25.0))
+MEMORY_STEPS = (1, 2, 4)
+#: Half the incident pulse's length (s; the band's Hann support, ~1.6 MHz wide), the first part of `precursor_lead`.
+HALF_PULSE = 0.8e-6
+
+
+def precursor_lead(s: flr.Setup, sines: np.ndarray) -> float:
+    """How long before the normal-incidence surface echo 2 z_s/c0 a path through the medium can first arrive (s):
+    the earliest element's firing in a synthesised plane wave, max_{u,θ} (−u·s_θ)/c0 (it reaches the surface
+    below itself z_s/c0 later and comes back as soon), plus HALF_PULSE."""
+    fire = -(s.elements()[:, :2] @ np.asarray(sines, dtype=np.float64)[:, :2].T) / s.c0
+    return float(max(fire.max(), 0.0)) + HALF_PULSE
 
 
 def transmit_sines(dim: int) -> np.ndarray:
@@ -153,7 +164,23 @@ def measure(
     ci = bm.confocal_contrast_slope(
         v, freqs, s.elements(), sines, s.c0, s.dim, depths, echo, z_fit, contrast_half_width(s), band=s.band
     )
-    return {"t": t, "env": env, "fc": fc, "cbs": cbs, "cbs_age": cbs_age, "ci": ci, "z_fit": z_fit}
+    # The angular memory effect by age: the transmits' correlation under a common tilt of input and output.
+    memory = {}
+    for a, b in MEMORY_AGES:
+        if t_on + b * 1e-6 <= s.t_end:
+            vg = bm.gate_spectra(v, freqs, (t_on + a * 1e-6, t_on + b * 1e-6))
+            r = bm.plane_wave_outputs(vg, freqs, s.elements(), sines, s.c0)
+            memory[(a, b)] = bm.memory_correlation(r, sines, MEMORY_STEPS)
+    return {
+        "t": t,
+        "env": env,
+        "fc": fc,
+        "cbs": cbs,
+        "cbs_age": cbs_age,
+        "memory": memory,
+        "ci": ci,
+        "z_fit": z_fit,
+    }
 
 
 def contrast_half_width(s: flr.Setup) -> float:
@@ -279,11 +306,23 @@ def report(res: dict[str, Any]) -> None:
     )
     # Before the surface echo less a pulse's and an oblique transmit's lead no path through the medium arrives:
     # there a record holds what its period 1/δf wraps round from late times, and a model's precursor.
-    t_cut = t_on - PRECURSOR_LEAD
+    lead = precursor_lead(s, transmit_sines(s.dim))
+    t_cut = t_on - lead
     pre = [bm.energy_before(r["t"], r["env"], t_cut) for r in (fl, mod)]
     print(
-        f"  energy before t_surface − {PRECURSOR_LEAD * 1e6:.1f} µs (no path; the period's wrap-round and any "
+        f"  energy before t_surface − {lead * 1e6:.1f} µs (no path; the period's wrap-round and any "
         f"precursor), share of the record: FL {pre[0]:.2e}, model {pre[1]:.2e}"
+    )
+    # The contrast's two terms apart: its slope can agree while its level does not.
+    z_ls = (fl["ci"]["depths"] - s.z_surface) / s.ls_c
+    at_z = [(m, int(np.argmin(np.abs(z_ls - m)))) for m in (0.0, 0.5, 1.0, 2.0, 3.0, 4.0, 5.0) if m <= z_ls.max()]
+    ratio_db = {key: 10 * np.log10(mod["ci"][key] / fl["ci"][key]) for key in ("background", "echo")}
+    zf = (fl["ci"]["depths"] >= fl["z_fit"][0]) & (fl["ci"]["depths"] <= fl["z_fit"][1])
+    print(
+        "  confocal background model/FL (dB) at "
+        + ", ".join(f"{m:g} ℓ_s: {ratio_db['background'][i]:+.1f}" for m, i in at_z)
+        + f"; mean over the fit {np.mean(ratio_db['background'][zf]):+.1f} (echo: mean "
+        f"{np.mean(ratio_db['echo'][zf]):+.1f}, max |·| {np.max(np.abs(ratio_db['echo'][zf])):.1f})"
     )
     print(
         f"  contrast slope × ℓ_s with its jackknife standard error over the realisations: "
@@ -334,6 +373,18 @@ def report(res: dict[str, Any]) -> None:
                 f"{a:g}–{b:g} µs FL {fl['cbs_age'][(a, b)]:.2f}, model {mod['cbs_age'][(a, b)]:.2f}"
                 for a, b in fl["cbs_age"]
             )
+        )
+    if fl["memory"]:
+        print(
+            "  memory effect C(m transmit steps) by age after the surface echo: "
+            + "; ".join(
+                f"{a:g}–{b:g} µs FL "
+                + "/".join(f"{fl['memory'][(a, b)][m]:.2f}" for m in fl["memory"][(a, b)])
+                + " model "
+                + "/".join(f"{mod['memory'][(a, b)][m]:.2f}" for m in mod["memory"][(a, b)])
+                for a, b in fl["memory"]
+            )
+            + f" (m = {', '.join(str(m) for m in MEMORY_STEPS)}; independent transmits ≈ 0)"
         )
     print(
         f"  CBS profile rms off 1 outside the cone: FL {flat[0]:.2f}, model {flat[1]:.2f}"

@@ -72,6 +72,24 @@ def test_energy_before_a_delayed_echo_is_its_pulse_tail_only() -> None:
         bm.energy_before(t, inten[:-1], t1)
 
 
+def test_memory_correlation_one_for_a_shift_invariant_matrix_small_for_independent_entries() -> None:
+    """R(b, a) = g(b − a) keeps its value under a common tilt (perfect memory effect): C = 1; independent
+    entries: C ≈ 0; a lattice on which no partner exists leaves the step out; a wrong shape names r."""
+    rng = np.random.default_rng(5)
+    x = np.linspace(-0.3, 0.3, 13)
+    sines = np.stack([x, np.zeros_like(x)], axis=1)
+    g = rng.standard_normal(2 * x.size) + 1j * rng.standard_normal(2 * x.size)
+    i = np.arange(x.size)
+    shift_inv = g[(i[:, None] - i[None, :]) + x.size][None, None]  # (1, 1, N_b, N_a)
+    got = bm.memory_correlation(shift_inv, sines, (1, 3))
+    assert got[1] == pytest.approx(1.0, abs=1e-9) and got[3] == pytest.approx(1.0, abs=1e-9)
+    noise = rng.standard_normal((8, 4, x.size, x.size)) + 1j * rng.standard_normal((8, 4, x.size, x.size))
+    assert bm.memory_correlation(noise, sines, (1,))[1] < 0.1
+    assert 20 not in bm.memory_correlation(noise, sines, (20,))
+    with pytest.raises(ValueError, match="r"):
+        bm.memory_correlation(noise[:, :, :-1], sines)
+
+
 def _array_data(symmetric: bool, n_real: int = 24) -> tuple[np.ndarray, ...]:
     """V(f, u, a) = c_a Σ_v K(u, v) e^{−ik a·v} from random element matrices K (symmetric or not)."""
     rng = np.random.default_rng(3)
