@@ -177,23 +177,31 @@ def _out_grid(sines: np.ndarray, dim: int, extent: float) -> np.ndarray:
     return b[np.hypot(b[:, 0], b[:, 1]) < 0.95]  # propagating directions only
 
 
+def _project(v_f: np.ndarray, k: float, phase: np.ndarray) -> np.ndarray:
+    """One frequency's outputs on upgoing plane waves b: R(b, a) = Σ_u V(u, a) e^{+ik b·u} (the conjugate of the
+    code's upgoing wave e^{−ik b·u}); v_f (n_real, N_u, N_θ), phase = b·u (N_b, N_u) → (n_real, N_b, N_θ)."""
+    return np.matmul(np.exp(1j * k * phase).astype(np.complex64)[None], v_f)
+
+
 def plane_wave_outputs(
     v: np.ndarray, freqs: np.ndarray, elements: np.ndarray, out_sines: np.ndarray, c0: float
 ) -> np.ndarray:
-    """R(f, b, a) = Σ_u V(f, u, a) e^{+ik b·u} (`cbs_enhancement`'s projection) for outputs b in `out_sines`:
-    (n_real, N_f, N_b, N_θ) complex64."""
+    """R(f, b, a) = Σ_u V(f, u, a) e^{+ik b·u} (`_project`) for outputs b in `out_sines`: (n_real, N_f, N_b, N_θ)
+    complex64."""
     v = _check(v, freqs)
     k = 2 * np.pi * np.asarray(freqs, dtype=np.float64) / c0
     ph = np.asarray(out_sines, dtype=np.float64)[:, :2] @ np.asarray(elements, dtype=np.float64)[:, :2].T
     out = np.empty((v.shape[0], k.size, ph.shape[0], v.shape[3]), dtype=np.complex64)
     for m in range(k.size):
-        out[:, m] = np.matmul(np.exp(1j * k[m] * ph).astype(np.complex64)[None], v[:, m])
+        out[:, m] = _project(v[:, m], float(k[m]), ph)
     return out
 
 
 def memory_correlation(r: np.ndarray, sines: np.ndarray, steps: tuple[int, ...] = (1, 2, 4)) -> dict[int, float]:
-    """The angular memory effect: the correlation of the plane-wave matrix under a common tilt of its input and
-    output by m steps of the transmit lattice along x,
+    """The angular memory effect (Feng, Kane, Lee & Stone, Phys. Rev. Lett. 61, 834 (1988); in reflection, a tilt
+    δ of the incident wave tilts the scattered speckle by δ about the specular direction b = a): the correlation
+    of the plane-wave matrix under a common tilt of its input and output by m steps of the transmit lattice
+    along x,
 
         C(m) = |Σ R(b + mδ, a + mδ) R*(b, a)| / √(Σ|R(b + mδ, a + mδ)|² Σ|R(b, a)|²),
 
@@ -275,8 +283,7 @@ def cbs_enhancement(
     num = 0.0 + 0.0j
     den = 0.0
     for m in range(k.size):
-        proj = np.exp(1j * k[m] * ph).astype(np.complex64)
-        r = np.matmul(proj[None], v[:, m])  # (n_real, N_b, N_θ)
+        r = _project(v[:, m], float(k[m]), ph)  # (n_real, N_b, N_θ)
         p += np.sum(np.abs(r) ** 2, axis=0)
         if exact:
             qq = r[:, ret, :] / cos_a[None, None, :]

@@ -72,6 +72,22 @@ def test_energy_before_a_delayed_echo_is_its_pulse_tail_only() -> None:
         bm.energy_before(t, inten[:-1], t1)
 
 
+def test_precursor_lead_is_the_edge_elements_firing_and_a_pulse() -> None:
+    """The most oblique transmit's earliest element fires (D/2)|s|/c0 before the centre (per lateral axis in
+    3-D); the lead adds the pulse length 1/B; a normal transmit alone leads by the pulse only."""
+    import foldy_lax_reference as flr
+    import validate_background as vb
+
+    for dim in (2, 3):
+        s = flr.setup_for(dim, quick=True)
+        half = np.abs(s.elements()[:, 0]).max()
+        sines = vb.transmit_sines(dim)
+        per_axis = half * np.abs(sines[:, 0]).max() / s.c0
+        want = per_axis * (dim - 1) + 1.0 / (s.band_hi - s.band_lo)
+        assert vb.precursor_lead(s, sines) == pytest.approx(want, rel=1e-9)
+        assert vb.precursor_lead(s, np.zeros((1, 2))) == pytest.approx(1.0 / (s.band_hi - s.band_lo))
+
+
 def test_memory_correlation_one_for_a_shift_invariant_matrix_small_for_independent_entries() -> None:
     """R(b, a) = g(b − a) keeps its value under a common tilt (perfect memory effect): C = 1; independent
     entries: C ≈ 0; a lattice on which no partner exists leaves the step out; a wrong shape names r."""
