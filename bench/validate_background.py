@@ -6,6 +6,9 @@
     .venv/bin/python bench/validate_background.py --layer cbs=True --layer single_scattering=field --match-dispersion
     .venv/bin/python bench/validate_background.py --layer envelope=diffusion --layer cbs=True \
         --layer single_scattering=field --match-dispersion --slab        # the README's comparison
+    .venv/bin/python bench/validate_background.py --layer envelope=diffusion --layer cbs=True \
+        --layer single_scattering=field --layer angular=halo --layer memory=True --match-dispersion --slab
+                                                     # the memory-effect option (docs/design.md §6.5)
     .venv/bin/python bench/validate_background.py --reference out/bench/fl_reference_2d_12el.npz ...  # another rig
     .venv/bin/python bench/validate_background.py --reference out/bench/fl_reference_3d_deep.npz --slab \
         --layer envelope=diffusion --layer cbs=True --layer single_scattering=field --layer angular=halo \

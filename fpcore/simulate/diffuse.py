@@ -27,6 +27,9 @@ Transport additions (issue: the paper's regime), each switched by the `Scatterin
   a_g²/(a_g² + 4D's)) (negligible there). Until 2026-12-02 only the plane-wave pairs on the transmit
   lattice shared their noise, and a receive beam, mixing independent neighbours, saw the cone diluted
   (3-D Foldy–Lax check: 1.43 against 2.14; symmetry 0.15 against 0.997).
+* **The angular memory effect** (memory=True; `memory`, docs/design.md §6.5): the main grid's noise correlated
+  along (o + L, θ + 1) and the block's along its common tilts, as exp(−k²δ²D_eff(τ)); the block's envelopes
+  divided by √G(t) so that the elements receive the envelope's energy (`memory.block_energy_gain`).
 * **Single scattering by the beads** (single_scattering="field"): the first order is a continuum
   reflectivity focused like a speckle image (`single_scattering.SingleScatteringField`, on its own output
   grid, projected separately), and the Gaussian field carries the orders ≥ 2 only; "envelope" keeps all
@@ -52,6 +55,7 @@ import scipy.fft as sfft
 
 from ..acquisition import element_grid_axes
 from ..geometry import cosines
+from .memory import MemoryKernel, block_energy_gain, block_kernel, effective_spread, grid_kernel
 from .reciprocity import ReciprocalBlock
 from .single_scattering import SingleScatteringField
 from .waves import Band, TimeWindow
@@ -334,7 +338,25 @@ class DiffuseBackground:
             blk = self.block
             i, j = blk.pairs  # the pair (o_i, a_j), i ≤ j, stands for its reversed path (o_j, a_i) too
             env_b, self._block_g1 = self._envelopes(self.s_out[blk.rows[i]], blk.inputs[j], cone=False, paired=True)
-            self._block_env = blk.envelopes(env_b)  # (n_pairs, 1, n_bb): T_ij = T_ji
+            self._block_env = blk.envelopes(env_b, doubled_diagonal=not layer.memory)  # (n_pairs, 1, n_bb)
+        # The angular memory effect (`memory`, eq. M1): the noise correlated under a common tilt of input and
+        # output, D_eff at the age of a normally incident path at each time sample, k at the band's centre.
+        self._memory: MemoryKernel | None = None
+        self._memory_block: MemoryKernel | None = None
+        if layer.memory:
+            kc2 = (2 * np.pi * band.centre / c0) ** 2
+            d_eff = effective_spread(
+                self._t - 2 * layer.z_surface / c0, float(layer.ls_at(band.centre)), v, dim, a_g2(aperture_radius)
+            )
+
+            def beta(delta: float) -> np.ndarray:
+                return kc2 * delta**2 * d_eff
+
+            self._memory = grid_kernel(axes, keep, spacings, s, beta)
+            if self.block is not None:
+                self._memory_block = block_kernel(self.block.m_inputs, spacings, s, beta)
+                g = block_energy_gain(el, spacings, self.block.m_inputs, s, beta, np.sqrt(kc2))
+                self._block_env = [e / np.sqrt(g).astype(np.float32) for e in self._block_env]
         self.single: SingleScatteringField | None = None
         if layer.single_scattering == "field":
             ss_rng = _beads_stream(rng)
@@ -457,12 +479,19 @@ class DiffuseBackground:
         return out
 
     def _noise(self) -> np.ndarray:
-        """The independent outputs' noise (N_o, N_θ, n_bb)."""
+        """The outputs' noise (N_o, N_θ, n_bb): independent, or correlated under common tilts (`memory`)."""
+        if self._memory is not None:
+            return self._memory.draw(lambda shape: self._white(shape + (self.n_bb,)))
         return self._white((self.n_o, self.n_i, self.n_bb))
 
     def _block_noise(self) -> np.ndarray:
-        """The reciprocal block's noise over its pairs i ≤ j (n_pairs, 1, n_bb): T_ji is T_ij (`reciprocity`)."""
+        """The reciprocal block's noise over its pairs i ≤ j (n_pairs, 1, n_bb): T_ji is T_ij (`reciprocity`);
+        with the memory effect T_ij = (X_ij + X_ji)/√2, X correlated along common tilts (`memory`)."""
         assert self.block is not None
+        if self._memory_block is not None:
+            x = self._memory_block.draw(lambda shape: self._white(shape + (self.n_bb,)))
+            i, j = self.block.pairs
+            return ((x[i, j] + x[j, i]) * np.float32(np.sqrt(0.5)))[:, None, :]
         return self._white((self.block.n_pairs, 1, self.n_bb))
 
     def _project(self, aw: np.ndarray) -> np.ndarray:

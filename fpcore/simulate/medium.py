@@ -45,7 +45,8 @@ Physics (paper Supplementary S1, S4; docs/design.md §6):
     field on the array is thereby a speckle of grain ≈ λ/(2 s_d); transmits are independent (the
     angular memory effect, ~1/(k × the halo's width), is neglected — measured against Foldy–Lax it is not
     negligible: a common tilt of 1 transmit step (0.03) keeps a correlation of 0.5–0.8 over the first 25 µs
-    in 2-D, and the confocal background comes out ≈ 2.5 dB low; README, docs/design.md §6.4). This is
+    in 2-D, and the confocal background comes out ≈ 2.5 dB low; README, docs/design.md §6.4; ``memory=True``
+    adds it, `memory`, §6.5: it reproduces Foldy–Lax's correlation in 2-D and closes 0.5 dB of that). This is
     ``angular="uniform"``; ``angular="halo"`` gives each direction the share of the halo that its ray
     through the array sees, at that ray's delay, and the level there (`diffuse.HaloGeometry`; the
     sinking scenarios' default, validated against Foldy–Lax: docs/design.md §6.3);
@@ -112,6 +113,7 @@ class ScatteringLayer:
     thickness: float = np.inf
     width: float = np.inf
     angular: str = "uniform"
+    memory: bool = False
 
     def __post_init__(self) -> None:
         if self.angular not in ("uniform", "halo"):

@@ -111,6 +111,7 @@ class ReciprocalBlock:
         keep = [tuple(-c) in index for c in cand]
         m_a = cand[np.array(keep, dtype=bool)]
         self.rows = np.array([index[tuple(-c)] for c in m_a], dtype=np.int64)  # o_i = −a_i in s_out
+        self.m_inputs = m_a  # a_j's integer grid offsets (`memory.block_kernel`)
         self.inputs = m_a * ds[None, :]
         if n_ax == 1:
             self.inputs[:, 1] = 0.0
@@ -136,14 +137,16 @@ class ReciprocalBlock:
         self.n_pairs = int(self.pairs[0].size)
         self.diagonal = self.pairs[0] == self.pairs[1]  # (o_i, a_i) = (−a_i, a_i): exact retro-reflection
 
-    def envelopes(self, ladder: list[np.ndarray]) -> list[np.ndarray]:
+    def envelopes(self, ladder: list[np.ndarray], doubled_diagonal: bool = True) -> list[np.ndarray]:
         """The block's packed envelopes (module doc) from the ladder envelope of each pair i ≤ j (n_pairs, 1, …):
         √2 on the diagonal, where the exactly retro-reflected plane wave (−a_i, a_i) is its own reversed path
-        (⟨|T_ii|²⟩ = 2 × ladder). One envelope per packed pair serves T_ij and T_ji alike."""
+        (⟨|T_ii|²⟩ = 2 × ladder), unless `doubled_diagonal` is False (a noise T_ij = (X_ij + X_ji)/√2 whose
+        diagonal already has variance 2: `memory`). One envelope per packed pair serves T_ij and T_ji alike."""
         out = []
         for env in ladder:
             e = env.copy()
-            e[self.diagonal] *= np.float32(np.sqrt(2.0))
+            if doubled_diagonal:
+                e[self.diagonal] *= np.float32(np.sqrt(2.0))
             out.append(e)
         return out
 
