@@ -124,3 +124,8 @@ def test_energy_gain_is_one_without_correlation_and_the_beam_overlap_with_full_c
     g = block_energy_gain(el, [ds], m, sines, lambda d: np.array([1e6, 0.0]), k)
     assert g[0] == pytest.approx(1.0, abs=1e-9)
     assert g[1] > 1.5
+
+
+def test_memory_without_reciprocity_is_refused_by_name() -> None:
+    with pytest.raises(ValueError, match="memory"):
+        ScatteringLayer(z_surface=5e-3, ls=1.8e-3, memory=True)

@@ -118,6 +118,10 @@ class ScatteringLayer:
     def __post_init__(self) -> None:
         if self.angular not in ("uniform", "halo"):
             raise ValueError(f"angular: expected 'uniform' or 'halo', got {self.angular!r}")
+        if self.memory and not self.cbs:
+            raise ValueError(
+                "memory: expected cbs=True as well (the memory effect needs the output grid aligned with the transmits)"
+            )
         if self.single_scattering not in ("envelope", "field"):
             raise ValueError(f"single_scattering: expected 'envelope' or 'field', got {self.single_scattering!r}")
         if self.ls_exponent != 0.0 and not self.f_ref > 0:

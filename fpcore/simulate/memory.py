@@ -17,8 +17,10 @@ Construction. White noise on a box of lattice indices is correlated along the li
 (u = c + slope·v in two of its axes: v the transmit's lattice index, u the output's grid index), line by
 line, with the symmetric square root of the Toeplitz matrix exp(−β (n − n')²) of (M1) at each time sample
 (β = k_c² δ² D_eff(τ(t)), δ one step along the line, τ the age of a normally incident path at that time):
-each entry keeps unit variance and neighbours n steps apart have correlation exp(−β n²) (exactly when the
-line is longer than the correlation, `gaussian_roots`). The time axis is last.
+each entry keeps unit variance and neighbours n steps apart have correlation exp(−β n²) exactly (a Gaussian
+Toeplitz matrix is positive semi-definite at any length, `gaussian_roots`). The time axis is last. In the
+reciprocal block only whole transmit steps are correlated, and its envelopes are divided by the energy gain
+of the correlation within a transmit's beam (`block_kernel`, `block_energy_gain`).
 """
 
 from __future__ import annotations
@@ -139,9 +141,9 @@ def block_kernel(
     """The kernel of the reciprocal block (`reciprocity.ReciprocalBlock`): rows o_i = −a_i and inputs a_j given
     by their integer grid offsets `m_inputs` (P, 2); a common tilt (o_i + δ, a_j + δ) is (m_i − 1, m_j + 1) per
     axis, so the lines are m_i + m_j = const. Only tilts by whole steps L of the transmits' lattice (`sines`)
-    are correlated (stride L): within one transmit's beam the halo geometry already gives each direction the
-    part of the halo its ray sees, and correlating there too would count that localisation twice (measured in
-    2-D: +0.9 dB on the whole record). `index` reads the full (P, P) table X_ij."""
+    are correlated (stride L), as on the main grid, where the transmits are the only inputs; what remains of
+    the correlation within a transmit's beam (L = 1 under a small array) is divided out of the energy by
+    `block_energy_gain`. `index` reads the full (P, P) table X_ij."""
     m = np.asarray(m_inputs, dtype=np.int64)
     si = np.asarray(sines, dtype=np.float64)
     n_ax = len(spacings)
@@ -181,18 +183,14 @@ def block_energy_gain(
         n = np.arange(-half, half + 1)
         offs = np.zeros((n.size, 2))
         offs[:, d] = n * ds
-        b = array_factor_1d(elements, offs, k)
-        m_b = np.arange(-half, half + 1)
-        offs_b = np.zeros((m_b.size, 2))
-        offs_b[:, d] = m_b * ds
-        bt = array_factor_1d(elements, offs_b, k)
-        full = np.correlate(bt, bt, mode="full")  # Σ_m B(m + n) B*(m), lags −2·half … 2·half
-        rho = full[half : 3 * half + 1] / np.sum(np.abs(bt) ** 2)  # lags −half … half
+        b = array_factor_1d(elements, offs, k)  # the receive side's B(nΔs) and the transmit beam on the grid alike
+        full = np.correlate(b, b, mode="full")  # Σ_m B(m + n) B*(m), lags −2·half … 2·half
+        rho = full[half : 3 * half + 1] / np.sum(np.abs(b) ** 2)  # lags −half … half
         _, step = _lattice(np.rint(si[:, d] / ds).astype(np.int64))
         stride = step
         beta = beta_per_step2(stride * ds)
         c = np.where((n % stride == 0)[None, :], np.exp(-beta[:, None] * (n[None, :] / stride) ** 2), 0.0)
-        g = c @ np.real(b * rho)
+        g = c @ np.real(np.conj(b) * rho)  # outputs n steps apart are weighted by B(−nΔs) = B*(nΔs) (e^{−ik s_o·u})
         gain = g if gain is None else gain * g
     assert gain is not None
     return np.maximum(gain, 1e-3)
