@@ -340,27 +340,74 @@ def confocal_background(
 ) -> np.ndarray:
     """Confocal intensity ⟨|B(r)|²⟩ over realisations at `points` (N_p, 3), by delay-and-sum in the element
     basis, B(r) = Σ_{f,u,θ} w(f) V(f, u, θ) e^{+ik(|u − r| + a_θ·ρ + c_θ z)} — the focusing phase of
-    docs/design.md §4.3 (paper eq. confocal, Supplementary S4 eq. mean_intensity) without apodization.
-    Returns (N_p,), or |B|² of each realisation (n_real, N_p) with `per_realisation`."""
+    docs/design.md §4.3 (paper eq. confocal, Supplementary S4 eq. mean_intensity) without apodization:
+    `focused_background` with the same point in and out. Returns (N_p,), or |B|² of each realisation
+    (n_real, N_p) with `per_realisation`."""
+    return focused_background(v, freqs, elements, sines, c0, dim, points, points, band, per_realisation)
+
+
+def focused_background(
+    v: np.ndarray,
+    freqs: np.ndarray,
+    elements: np.ndarray,
+    sines: np.ndarray,
+    c0: float,
+    dim: int,
+    points_in: np.ndarray,
+    points_out: np.ndarray,
+    band: Band | None = None,
+    per_realisation: bool = False,
+) -> np.ndarray:
+    """The focused reflection matrix's intensity ⟨|R(r_in, r_out)|²⟩ over realisations for pairs of points
+    (N_p, 3) each: the transmits focused at r_in, the receive at r_out, R = Σ_{f,u,θ} w(f) V(f, u, θ)
+    e^{+ik(|u − r_out| + a_θ·ρ_in + c_θ z_in)} (the focused basis of Lambert et al., PNAS 117, 14645 (2020);
+    r_in = r_out is the confocal image, `confocal_background`). Returns (N_p,), or (n_real, N_p)."""
     v = _check(v, freqs)
     w = spectral_weight(freqs, band)
     k = 2 * np.pi * np.asarray(freqs, dtype=np.float64) / c0
-    pts = np.asarray(points, dtype=np.float64)
+    p_in, p_out = np.asarray(points_in, dtype=np.float64), np.asarray(points_out, dtype=np.float64)
+    if p_in.shape != p_out.shape:
+        raise ValueError(f"points_out: expected the shape of points_in {p_in.shape}, got {p_out.shape}")
     el = np.asarray(elements, dtype=np.float64)
     if dim == 2:
-        d_out = np.hypot(pts[:, None, 0] - el[None, :, 0], pts[:, None, 2] - el[None, :, 2])
+        d_out = np.hypot(p_out[:, None, 0] - el[None, :, 0], p_out[:, None, 2] - el[None, :, 2])
     else:
-        d_out = np.linalg.norm(pts[:, None, :] - el[None, :, :], axis=2)
+        d_out = np.linalg.norm(p_out[:, None, :] - el[None, :, :], axis=2)
     s = np.asarray(sines, dtype=np.float64)
     c = np.sqrt(1.0 - s[:, 0] ** 2 - s[:, 1] ** 2)
-    d_in = pts[:, :2] @ s.T + pts[:, 2:3] * c[None, :]  # (N_p, N_θ)
-    acc = np.zeros((v.shape[0], pts.shape[0]), dtype=np.complex128)
+    d_in = p_in[:, :2] @ s.T + p_in[:, 2:3] * c[None, :]  # (N_p, N_θ)
+    acc = np.zeros((v.shape[0], p_in.shape[0]), dtype=np.complex128)
     for m in range(k.size):
         e_out = np.exp(1j * k[m] * d_out).astype(np.complex64)
         e_in = (w[m] * np.exp(1j * k[m] * d_in)).astype(np.complex64)
         y = np.matmul(e_out[None], v[:, m])  # (n_real, N_p, N_θ)
         acc += np.sum(y * e_in[None], axis=2)
     return np.abs(acc) ** 2 if per_realisation else np.mean(np.abs(acc) ** 2, axis=0)
+
+
+def focused_profile(
+    v: np.ndarray,
+    freqs: np.ndarray,
+    elements: np.ndarray,
+    sines: np.ndarray,
+    c0: float,
+    dim: int,
+    depth: float,
+    separations: np.ndarray,
+    half_width: float,
+    n_lateral: int = 9,
+    band: Band | None = None,
+) -> np.ndarray:
+    """⟨|R(r_in, r_out)|²⟩ at one depth against the in–out separation Δx along x (`focused_background`),
+    averaged over `n_lateral` midpoints in |x| ≤ half_width (y = 0): (N_Δ,). Multiple scattering spreads
+    the focused matrix over Δx like its diffuse halo; the confocal image is Δx = 0."""
+    xm = np.linspace(-half_width, half_width, n_lateral)
+    out = []
+    for dx in np.asarray(separations, dtype=np.float64):
+        p_in = np.stack([xm - dx / 2, np.zeros_like(xm), np.full_like(xm, depth)], axis=1)
+        p_out = np.stack([xm + dx / 2, np.zeros_like(xm), np.full_like(xm, depth)], axis=1)
+        out.append(float(np.mean(focused_background(v, freqs, elements, sines, c0, dim, p_in, p_out, band))))
+    return np.array(out)
 
 
 def confocal_profile(

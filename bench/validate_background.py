@@ -33,9 +33,11 @@ four agreement figures of the issue, measured with bench/background_metrics.py o
    with their combined jackknife error, and Foldy–Lax's background split into its first scattering order
    (`foldy_lax_reference.single_scattering`) and the rest, say what sets it.
 Also printed: the CBS enhancement and the memory effect (`background_metrics.memory_correlation`) by the paths'
-age (gates after the surface echo), the confocal background and echo model/FL by depth, and the share of
-each record's energy before the surface echo less `precursor_lead`, which no path reaches (Foldy–Lax: the period's
-wrap-round; the model: that plus the speckle's aliasing where its output grid is capped, `--ss-directions`).
+age (gates after the surface echo), the focused matrix's intensity against the in–out separation at 1–4 ℓ_s
+(`background_metrics.focused_profile`: FL's profile and model/FL), the confocal background and echo model/FL by
+depth, and the share of each record's energy before the surface echo less `precursor_lead`, which no path
+reaches (Foldy–Lax: the period's wrap-round; the model: that plus the speckle's aliasing where its output grid
+is capped, `--ss-directions`).
 Writes out/bench/validate_background.png (rows: dimensions; columns: the four figures).
 """
 
@@ -57,6 +59,7 @@ import background_metrics as bm  # noqa: E402
 import foldy_lax_reference as flr  # noqa: E402
 
 import fpcore.simulate.single_scattering as ss_mod  # noqa: E402
+from fpcore.simulate.diffuse import project_plane_waves  # noqa: E402
 from fpcore.simulate.medium import DiffuseBackground, ScatteringLayer  # noqa: E402
 
 #: Depth ranges below the surface (in ℓ_s(f_c)) over which the contrast slope is also refitted, where the fit
@@ -69,6 +72,10 @@ CBS_AGES = ((5.0, 10.0), (10.0, 20.0), (20.0, 30.0))
 #: Gates after the surface echo (µs) and tilts (transmit steps) of the memory-effect correlation.
 MEMORY_AGES = ((3.0, 6.0), (6.0, 12.0), (12.0, 25.0))
 MEMORY_STEPS = (1, 2, 4)
+#: The focused matrix's in–out separations (in wavelengths at f_c) and depths (in ℓ_s below the surface) at
+#: which `background_metrics.focused_profile` is printed: where the confocal background's deficit sits.
+FOCUSED_SEPARATIONS = (0.0, 0.5, 1.0, 2.0, 3.0, 5.0, 8.0)
+FOCUSED_DEPTHS = (1.0, 2.0, 3.0, 4.0)
 
 
 def precursor_lead(s: flr.Setup, sines: np.ndarray) -> float:
@@ -95,6 +102,15 @@ def model_realisations(
     s: flr.Setup, sines: np.ndarray, n_real: int, layer_kw: dict[str, Any], seed0: int = 1000
 ) -> np.ndarray:
     """V (n_real, N_f, N_u, N_θ) from the public model API, one independent rng per realisation."""
+    return model_orders(s, sines, n_real, layer_kw, seed0)[0]
+
+
+def model_orders(
+    s: flr.Setup, sines: np.ndarray, n_real: int, layer_kw: dict[str, Any], seed0: int = 1000
+) -> tuple[np.ndarray, np.ndarray]:
+    """V and its first-order part (the beads' focused speckle, zero without single_scattering="field"), both
+    (n_real, N_f, N_u, N_θ), one independent rng per realisation; V minus the first order is the Gaussian field
+    (orders ≥ 2)."""
     layer = ScatteringLayer(
         z_surface=s.z_surface,
         ls=s.ls_c,
@@ -104,7 +120,7 @@ def model_realisations(
         frame_displacement=0.0,
         **layer_kw,
     )
-    out = []
+    out, first = [], []
     for r in range(n_real):
         bg = DiffuseBackground(
             layer,
@@ -118,9 +134,15 @@ def model_realisations(
             np.random.default_rng(seed0 + r),
         )
         out.append(bg.next())
-        if r == 0 and bg.single is not None:
-            print(f"  single scattering on {bg.single.n_o} output directions (Δs = {bg.single.ds:.4f})")
-    return np.stack(out)
+        ss = bg.single
+        first.append(
+            np.zeros_like(out[-1])
+            if ss is None
+            else project_plane_waves(ss.spectrum(), bg.freqs, bg.c0, bg.elements, ss.s_out, ss.axes, ss.keep)
+        )
+        if r == 0 and ss is not None:
+            print(f"  single scattering on {ss.n_o} output directions (Δs = {ss.ds:.4f})")
+    return np.stack(out), np.stack(first)
 
 
 def model_echo(s: flr.Setup, depths: np.ndarray, freqs: np.ndarray, layer_kw: dict[str, Any]) -> np.ndarray:
@@ -174,7 +196,26 @@ def measure(
             vg = bm.gate_spectra(v, freqs, (t_on + a * 1e-6, t_on + b * 1e-6))
             r = bm.plane_wave_outputs(vg, freqs, s.elements(), sines, s.c0)
             memory[(a, b)] = bm.memory_correlation(r, sines, MEMORY_STEPS)
+    # The focused reflection matrix against the in–out separation: how far from the focus the background is.
+    lam = s.c0 / s.f_c
+    focused = {
+        zl: bm.focused_profile(
+            v,
+            freqs,
+            s.elements(),
+            sines,
+            s.c0,
+            s.dim,
+            s.z_surface + zl * s.ls_c,
+            np.array(FOCUSED_SEPARATIONS) * lam,
+            contrast_half_width(s),
+            band=s.band,
+        )
+        for zl in FOCUSED_DEPTHS
+        if zl * s.ls_c < s.thickness - pulse
+    }
     return {
+        "focused": focused,
         "t": t,
         "env": env,
         "fc": fc,
@@ -201,7 +242,28 @@ def fl_orders(s: flr.Setup, data: dict[str, np.ndarray], v_fl: np.ndarray, sines
     return {
         "single": bm.confocal_profile(v1, *args, band=s.band).mean(axis=0),
         "multiple": bm.confocal_profile(v_fl - v1, *args, band=s.band).mean(axis=0),
+        "focused": focused_orders(s, v_fl, v1, sines, freqs),
     }
+
+
+def focused_orders(
+    s: flr.Setup, v: np.ndarray, v1: np.ndarray, sines: np.ndarray, freqs: np.ndarray
+) -> dict[float, tuple[np.ndarray, np.ndarray]]:
+    """The focused matrix's profile (`background_metrics.focused_profile`) of the first order v1 and of the rest
+    v − v1 at FOCUSED_DEPTHS (ℓ_s below the surface, above the slab's bottom less a pulse length)."""
+    lam, pulse = s.c0 / s.f_c, s.c0 / (2 * (s.band_hi - s.band_lo))
+    seps = np.array(FOCUSED_SEPARATIONS) * lam
+    out = {}
+    for zl in FOCUSED_DEPTHS:
+        if zl * s.ls_c < s.thickness - pulse:
+            z = s.z_surface + zl * s.ls_c
+            hw = contrast_half_width(s)
+            prof = [
+                bm.focused_profile(x, freqs, s.elements(), sines, s.c0, s.dim, z, seps, hw, band=s.band)
+                for x in (v1, v - v1)
+            ]
+            out[zl] = (prof[0], prof[1])
+    return out
 
 
 def compare(
@@ -236,12 +298,13 @@ def compare(
     v_fl = flr.plane_waves(data["K"], freqs, s.elements(), sines, s.c0, s.pitch, dim)
     n_m = n_model or (24 if dim == 2 else 8)
     t1 = time.perf_counter()
-    v_mod = model_realisations(s, sines, n_m, layer_kw)
+    v_mod, v_mod1 = model_orders(s, sines, n_m, layer_kw)
     t_model = time.perf_counter() - t1
     depths = data["depths"]
     fl = measure(v_fl, s, sines, freqs, depths, fl_echo(data, freqs, s.band))
     fl["orders"] = fl_orders(s, data, v_fl, sines)
     mod = measure(v_mod, s, sines, freqs, depths, model_echo(s, depths, freqs, layer_kw))
+    mod["focused_orders"] = focused_orders(s, v_mod, v_mod1, sines, freqs)
     # ℓ_s of the FL medium from its coherent wave at f_c (sanity: input 1.8 mm)
     m_c = int(np.argmin(np.abs(freqs - s.f_c)))
     tb = np.abs(data["T"].mean(axis=0)[m_c])
@@ -389,6 +452,27 @@ def report(res: dict[str, Any]) -> None:
             )
             + f" (m = {', '.join(str(m) for m in MEMORY_STEPS)}; independent transmits ≈ 0)"
         )
+    if fl["focused"]:
+        sep = ", ".join(f"{x:g}" for x in FOCUSED_SEPARATIONS)
+        print(f"  focused matrix ⟨|R(x − Δx/2, x + Δx/2)|²⟩ at Δx/λ = {sep} (the confocal image is Δx = 0):")
+        for zl, prof in fl["focused"].items():
+            fl_db = 10 * np.log10(prof / prof[0])
+            ratio = 10 * np.log10(mod["focused"][zl] / prof)
+            print(
+                f"    {zl:g} ℓ_s: FL dB re Δx = 0 " + " ".join(f"{x:+.1f}" for x in fl_db)
+                + "; model/FL dB " + " ".join(f"{x:+.1f}" for x in ratio)
+            )  # fmt: skip
+    if fl["orders"]["focused"]:
+        print(
+            "  the same by order, dB re FL's whole at Δx = 0 (first order: FL's on its redrawn scatterers, the "
+            "model's focused speckle; the rest: orders ≥ 2):"
+        )
+        for zl, (f1, fm) in fl["orders"]["focused"].items():
+            m1, mm = mod["focused_orders"][zl]
+            ref = fl["focused"][zl][0]
+            parts = (("FL first", f1), ("model first", m1), ("FL rest", fm), ("model rest", mm))
+            cells = [n + " " + " ".join(f"{10 * np.log10(x / ref):+.1f}" for x in p) for n, p in parts]
+            print(f"    {zl:g} ℓ_s: " + "; ".join(cells))
     print(
         f"  CBS profile rms off 1 outside the cone: FL {flat[0]:.2f}, model {flat[1]:.2f}"
         + ("  (> 0.1: envelope not separable, the enhancement is not a cone height)" if max(flat) > 0.1 else "")

@@ -175,3 +175,28 @@ def test_bad_input_names_the_field() -> None:
         bm.time_envelope(np.zeros((3, 4, 5)), np.arange(4.0))
     with pytest.raises(ValueError, match="freqs: expected a uniform"):
         bm.time_envelope(np.zeros((1, 3, 1, 1)), np.array([1.0, 2.0, 4.0]))
+
+
+def test_focused_profile_of_a_point_echo_peaks_at_zero_separation_and_equals_the_confocal_image() -> None:
+    """A point reflector's echo V(f, u, a) = e^{−ik(|u − r₀| + a·ρ₀ + c_a z₀)} is focused at r₀ in and out: the
+    focused matrix at its depth peaks at Δx = 0, where it is the confocal image, and falls by more than half
+    a few wavelengths off; mismatched point sets are refused by name."""
+    c0, n_u = 1500.0, 48
+    freqs = np.linspace(1.8e6, 2.6e6, 24)
+    lam = c0 / 2.2e6
+    x = (np.arange(n_u) - (n_u - 1) / 2) * lam / 2
+    el = np.stack([x, np.zeros(n_u), np.zeros(n_u)], axis=1)
+    s = np.linspace(-0.3, 0.3, 15)
+    sines = np.stack([s, np.zeros_like(s)], axis=1)
+    r0 = np.array([0.0, 0.0, 10e-3])
+    k = 2 * np.pi * freqs / c0
+    d_out = np.hypot(el[:, 0] - r0[0], el[:, 2] - r0[2])
+    d_in = s * r0[0] + np.sqrt(1 - s**2) * r0[2]
+    v = np.exp(-1j * k[:, None, None] * (d_out[None, :, None] + d_in[None, None, :]))[None]
+    seps = np.array([0.0, 0.5, 1.0, 3.0, 6.0]) * lam
+    prof = bm.focused_profile(v, freqs, el, sines, c0, 2, r0[2], seps, 0.0, n_lateral=1)
+    assert np.argmax(prof) == 0 and prof[-1] < 0.5 * prof[0] and prof[-2] < 0.5 * prof[0]
+    conf = bm.confocal_background(v, freqs, el, sines, c0, 2, r0[None])
+    assert prof[0] == pytest.approx(float(conf[0]), rel=1e-6)
+    with pytest.raises(ValueError, match="points_out"):
+        bm.focused_background(v, freqs, el, sines, c0, 2, r0[None], np.stack([r0, r0]))
