@@ -38,6 +38,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -232,26 +233,61 @@ def run(s: Setup, path: Path) -> dict[str, np.ndarray]:
     return out
 
 
+def _redrawn(s: Setup, data: dict[str, np.ndarray], n_real: int | None = None) -> Iterator[np.ndarray]:
+    """The scatterers of the first `n_real` (all) saved realisations, drawn again from the setup's seed in `run`'s
+    order; a count that differs from the saved one is refused (a stale or foreign file)."""
+    rng = np.random.default_rng(s.seed)
+    n = data["K"].shape[0] if n_real is None else min(n_real, data["K"].shape[0])
+    for r in range(n):
+        pts = random_slab(rng, s.density, s.width, s.thickness, s.dim, z0=s.z_surface)
+        if pts.shape[0] != int(data["n_scatterers"][r]):
+            raise ValueError(f"realisation {r}: redrawn {pts.shape[0]} scatterers, saved {data['n_scatterers'][r]}")
+        yield pts
+
+
+def _coherent_leg(data: dict[str, np.ndarray], m: int, z: np.ndarray) -> np.ndarray:
+    """⟨T⟩(z) at frequency index m: the coherent wave's transmission to depth z (one leg)."""
+    tbar = data["T"].mean(axis=0)[m]
+    return np.interp(z, data["depths"], tbar.real) + 1j * np.interp(z, data["depths"], tbar.imag)
+
+
 def single_scattering(s: Setup, data: dict[str, np.ndarray]) -> np.ndarray:
     """K⁽¹⁾ (n_real, N_f, N_u, N_u) complex64: the first order of each saved realisation in the independent-
     scattering approximation, each scatterer excited and re-radiating through the coherent wave,
     K⁽¹⁾_uv = Σ_j G(u, r_j) t ⟨T⟩(z_j)² G(r_j, v) (paper S1: the ballistic wave ⟨ψ⟩ = T ψ_inc both ways).
     The scatterers are drawn again from the setup's seed, in `run`'s order (checked against the saved counts);
     K − K⁽¹⁾ is then the multiple scattering (with the first order's fluctuation about ⟨T⟩)."""
-    rng = np.random.default_rng(s.seed)
-    freqs, depths, el = data["freqs"], data["depths"], s.elements()
-    tbar = data["T"].mean(axis=0)  # (N_f, N_z)
+    freqs, el = data["freqs"], s.elements()
     out = np.empty(data["K"].shape, dtype=np.complex64)
-    for r in range(out.shape[0]):
-        pts = random_slab(rng, s.density, s.width, s.thickness, s.dim, z0=s.z_surface)
-        if pts.shape[0] != int(data["n_scatterers"][r]):
-            raise ValueError(f"realisation {r}: redrawn {pts.shape[0]} scatterers, saved {data['n_scatterers'][r]}")
+    for r, pts in enumerate(_redrawn(s, data)):
         d = _pairwise(el, pts, s.dim)
         for m, f in enumerate(freqs):
             k = 2 * np.pi * f / s.c0
-            tz = np.interp(pts[:, 2], depths, tbar[m].real) + 1j * np.interp(pts[:, 2], depths, tbar[m].imag)
+            tz = _coherent_leg(data, m, pts[:, 2])
             g = green(k, d, s.dim)
             out[r, m] = (g * (complex(s.strength(np.array(k))) * tz**2)) @ g.T
+    return out
+
+
+def double_scattering(s: Setup, data: dict[str, np.ndarray], n_real: int | None = None) -> np.ndarray:
+    """K⁽²⁾ (n_real, N_f, N_u, N_u) complex64 of the first `n_real` realisations: the second order in the same
+    approximation, K⁽²⁾_uv = Σ_{i≠j} G(u, r_i) t ⟨T⟩(z_i) ⟨G⟩(r_i, r_j) t ⟨T⟩(z_j) G(r_j, v), the legs between
+    the array and the scatterers through the coherent wave and the leg between them through the mean Green
+    function ⟨G⟩ = G e^{−r/2ℓ_s(f)} (its extinction). Symmetric (reciprocity). With resonant scatterers the
+    orders interfere, so |K⁽¹⁾|², |K⁽²⁾|² and the rest do not add up to |K|²."""
+    freqs, el = data["freqs"], s.elements()
+    pts_all = list(_redrawn(s, data, n_real))
+    out = np.empty((len(pts_all),) + data["K"].shape[1:], dtype=np.complex64)
+    for r, pts in enumerate(pts_all):
+        d = _pairwise(el, pts, s.dim)
+        dd = _pairwise(pts, pts, s.dim)
+        np.fill_diagonal(dd, 1.0)  # i = j is left out below
+        for m, f in enumerate(freqs):
+            k = 2 * np.pi * f / s.c0
+            g = green(k, d, s.dim) * (complex(s.strength(np.array(k))) * _coherent_leg(data, m, pts[:, 2]))[None, :]
+            inner = green(k, dd, s.dim) * np.exp(-dd / (2 * float(data["ls"][m])))
+            np.fill_diagonal(inner, 0.0)
+            out[r, m] = g @ inner @ g.T
     return out
 
 

@@ -9,6 +9,7 @@
     .venv/bin/python bench/validate_background.py --layer envelope=diffusion --layer cbs=True \
         --layer single_scattering=field --layer angular=halo --layer memory=True --match-dispersion --slab
                                                      # the memory-effect option (docs/design.md §6.5)
+    .venv/bin/python bench/validate_background.py ... --double-scattering 6   # FL's focused matrix by order too
     .venv/bin/python bench/validate_background.py --reference out/bench/fl_reference_2d_12el.npz ...  # another rig
     .venv/bin/python bench/validate_background.py --reference out/bench/fl_reference_3d_deep.npz --slab \
         --layer envelope=diffusion --layer cbs=True --layer single_scattering=field --layer angular=halo \
@@ -484,6 +485,39 @@ def report(res: dict[str, Any]) -> None:
     )
 
 
+def report_orders(s: flr.Setup, data: dict[str, np.ndarray], n_real: int) -> None:
+    """Foldy–Lax's focused matrix (`background_metrics.focused_profile`) split into the first order, the second
+    (`foldy_lax_reference.double_scattering`) and the rest, on its first `n_real` realisations, in dB re the
+    whole at Δx = 0 (resonant scatterers: the orders interfere, so the parts need not add up)."""
+    sines = transmit_sines(s.dim)
+    freqs = data["freqs"]
+    sub = {**data, "K": data["K"][:n_real]}
+    n = sub["K"].shape[0]
+
+    def planes(k: np.ndarray) -> np.ndarray:
+        return flr.plane_waves(k, freqs, s.elements(), sines, s.c0, s.pitch, s.dim)
+
+    v, v1, v2 = planes(sub["K"]), planes(flr.single_scattering(s, sub)), planes(flr.double_scattering(s, sub))
+    parts = (("whole", v), ("first", v1), ("second", v2), ("third and up", v - v1 - v2), ("second and up", v - v1))
+    seps = np.array(FOCUSED_SEPARATIONS) * s.c0 / s.f_c
+    pulse = s.c0 / (2 * (s.band_hi - s.band_lo))
+    sep = ", ".join(f"{x:g}" for x in FOCUSED_SEPARATIONS)
+    print(f"  Foldy–Lax's focused matrix by order ({n} realisations), dB re the whole at Δx = 0, Δx/λ = {sep}:")
+    for zl in FOCUSED_DEPTHS:
+        if zl * s.ls_c >= s.thickness - pulse:
+            continue
+        z = s.z_surface + zl * s.ls_c
+        prof = {
+            name: bm.focused_profile(
+                x, freqs, s.elements(), sines, s.c0, s.dim, z, seps, contrast_half_width(s), band=s.band
+            )
+            for name, x in parts
+        }
+        ref = prof["whole"][0]
+        cells = [name + " " + " ".join(f"{10 * np.log10(x / ref):+.1f}" for x in p) for name, p in prof.items()]
+        print(f"    {zl:g} ℓ_s: " + "; ".join(cells))
+
+
 def plot(results: list[dict[str, Any]], png: Path) -> None:
     import matplotlib
 
@@ -580,6 +614,14 @@ def main(argv: list[str] | None = None) -> int:
         help="a Foldy–Lax reference file (foldy_lax_reference.py --out), instead of the default one; its setup "
         "sets the dimension",
     )
+    ap.add_argument(
+        "--double-scattering",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also split Foldy–Lax's focused matrix into the first, second and higher orders on its first N "
+        "realisations (foldy_lax_reference.double_scattering; about a minute per 2-D realisation)",
+    )
     ap.add_argument("--png", default="out/bench/validate_background.png")
     args = ap.parse_args(argv)
     ref = Path(args.reference) if args.reference else None
@@ -591,6 +633,9 @@ def main(argv: list[str] | None = None) -> int:
         ScatteringLayer(z_surface=5e-3, ls=1.8e-3, **layer_kw)
     except (TypeError, ValueError) as exc:
         print(f"--layer: {exc}", file=sys.stderr)
+        return 2
+    if args.double_scattering < 0:
+        print(f"--double-scattering: expected an integer >= 0, got {args.double_scattering}", file=sys.stderr)
         return 2
     if args.model_realisations is not None and args.model_realisations < 1:
         print(f"--model-realisations: expected an integer >= 1, got {args.model_realisations}", file=sys.stderr)
@@ -608,6 +653,8 @@ def main(argv: list[str] | None = None) -> int:
     for dim in dims:
         res = compare(dim, args.quick, args.model_realisations, layer_kw, args.match_dispersion, args.slab, ref)
         report(res)
+        if args.double_scattering:
+            report_orders(res["setup"], res["data"], args.double_scattering)
         results.append(res)
     plot(results, Path(args.png))
     print(f"\nwrote {args.png}")

@@ -87,3 +87,24 @@ def test_command_line_overrides_the_slab_in_mm() -> None:
 def test_command_line_refuses_a_non_positive_length(flag, capsys) -> None:
     assert flr.main(["--dim", "3", flag, "0"]) == 2
     assert f"{flag}: expected a length in mm > 0, got 0.0" in capsys.readouterr().err
+
+
+def test_second_order_is_the_direct_double_sum_and_reciprocal(tmp_path, monkeypatch) -> None:
+    """Two points: K⁽²⁾_uv = Σ_{i≠j} G(u, r_i) t⟨T⟩_i ⟨G⟩_ij t⟨T⟩_j G(r_j, v), ⟨G⟩ = G e^{−r/2ℓ_s}, written out
+    pair by pair; symmetric in u, v like the full solve."""
+    two = np.array([[1.2e-3, 0.0, 7e-3], [-0.9e-3, 0.0, 8.1e-3]])
+    monkeypatch.setattr(flr, "random_slab", lambda *a, **k: two.copy())
+    s, data = slab(tmp_path, ls=1e-3, n_real=1)
+    k2 = flr.double_scattering(s, data)
+    el = s.elements()
+    m = 7
+    f = data["freqs"][m]
+    k = 2 * np.pi * f / s.c0
+    t = complex(s.strength(np.array(k)))
+    leg = [t * complex(flr._coherent_leg(data, m, np.array([p[2]]))[0]) for p in two]
+    g = [flr.green(k, np.hypot(el[:, 0] - p[0], el[:, 2] - p[2]), 2) for p in two]
+    r = float(np.hypot(*(two[0] - two[1])[[0, 2]]))
+    inner = complex(flr.green(k, np.array(r), 2)) * np.exp(-r / (2 * float(data["ls"][m])))
+    want = sum(np.outer(g[i], g[j]) * leg[i] * inner * leg[j] for i, j in ((0, 1), (1, 0)))
+    np.testing.assert_allclose(k2[0, m], want, rtol=2e-4, atol=1e-6 * np.abs(want).max())
+    assert np.abs(k2 - np.swapaxes(k2, 2, 3)).max() <= 1e-5 * np.abs(k2).max()
