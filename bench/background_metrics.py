@@ -402,12 +402,13 @@ def focused_profile(
     averaged over `n_lateral` midpoints in |x| ≤ half_width (y = 0): (N_Δ,). Multiple scattering spreads
     the focused matrix over Δx like its diffuse halo; the confocal image is Δx = 0."""
     xm = np.linspace(-half_width, half_width, n_lateral)
-    out = []
-    for dx in np.asarray(separations, dtype=np.float64):
-        p_in = np.stack([xm - dx / 2, np.zeros_like(xm), np.full_like(xm, depth)], axis=1)
-        p_out = np.stack([xm + dx / 2, np.zeros_like(xm), np.full_like(xm, depth)], axis=1)
-        out.append(float(np.mean(focused_background(v, freqs, elements, sines, c0, dim, p_in, p_out, band))))
-    return np.array(out)
+    dx = np.asarray(separations, dtype=np.float64)
+    x_in, x_out = (xm[None, :] - dx[:, None] / 2).ravel(), (xm[None, :] + dx[:, None] / 2).ravel()
+    zeros, z = np.zeros_like(x_in), np.full_like(x_in, depth)
+    p_in, p_out = np.stack([x_in, zeros, z], axis=1), np.stack([x_out, zeros, z], axis=1)
+    # every separation's pairs in one pass over the frequencies
+    each = focused_background(v, freqs, elements, sines, c0, dim, p_in, p_out, band)
+    return each.reshape(dx.size, xm.size).mean(axis=1)
 
 
 def confocal_profile(

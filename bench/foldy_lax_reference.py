@@ -245,10 +245,10 @@ def _redrawn(s: Setup, data: dict[str, np.ndarray], n_real: int | None = None) -
         yield pts
 
 
-def _coherent_leg(data: dict[str, np.ndarray], m: int, z: np.ndarray) -> np.ndarray:
-    """⟨T⟩(z) at frequency index m: the coherent wave's transmission to depth z (one leg)."""
-    tbar = data["T"].mean(axis=0)[m]
-    return np.interp(z, data["depths"], tbar.real) + 1j * np.interp(z, data["depths"], tbar.imag)
+def _coherent_leg(tbar: np.ndarray, depths: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """⟨T⟩(z) from one frequency's realisation-averaged coherent wave `tbar` (N_z,) on `depths`: the coherent
+    wave's transmission to depth z (one leg)."""
+    return np.interp(z, depths, tbar.real) + 1j * np.interp(z, depths, tbar.imag)
 
 
 def single_scattering(s: Setup, data: dict[str, np.ndarray]) -> np.ndarray:
@@ -258,12 +258,13 @@ def single_scattering(s: Setup, data: dict[str, np.ndarray]) -> np.ndarray:
     The scatterers are drawn again from the setup's seed, in `run`'s order (checked against the saved counts);
     K − K⁽¹⁾ is then the multiple scattering (with the first order's fluctuation about ⟨T⟩)."""
     freqs, el = data["freqs"], s.elements()
+    tbar = data["T"].mean(axis=0)  # (N_f, N_z)
     out = np.empty(data["K"].shape, dtype=np.complex64)
     for r, pts in enumerate(_redrawn(s, data)):
         d = _pairwise(el, pts, s.dim)
         for m, f in enumerate(freqs):
             k = 2 * np.pi * f / s.c0
-            tz = _coherent_leg(data, m, pts[:, 2])
+            tz = _coherent_leg(tbar[m], data["depths"], pts[:, 2])
             g = green(k, d, s.dim)
             out[r, m] = (g * (complex(s.strength(np.array(k))) * tz**2)) @ g.T
     return out
@@ -276,6 +277,7 @@ def double_scattering(s: Setup, data: dict[str, np.ndarray], n_real: int | None 
     function ⟨G⟩ = G e^{−r/2ℓ_s(f)} (its extinction). Symmetric (reciprocity). With resonant scatterers the
     orders interfere, so |K⁽¹⁾|², |K⁽²⁾|² and the rest do not add up to |K|²."""
     freqs, el = data["freqs"], s.elements()
+    tbar = data["T"].mean(axis=0)  # (N_f, N_z)
     pts_all = list(_redrawn(s, data, n_real))
     out = np.empty((len(pts_all),) + data["K"].shape[1:], dtype=np.complex64)
     for r, pts in enumerate(pts_all):
@@ -284,7 +286,8 @@ def double_scattering(s: Setup, data: dict[str, np.ndarray], n_real: int | None 
         np.fill_diagonal(dd, 1.0)  # i = j is left out below
         for m, f in enumerate(freqs):
             k = 2 * np.pi * f / s.c0
-            g = green(k, d, s.dim) * (complex(s.strength(np.array(k))) * _coherent_leg(data, m, pts[:, 2]))[None, :]
+            leg = _coherent_leg(tbar[m], data["depths"], pts[:, 2])
+            g = green(k, d, s.dim) * (complex(s.strength(np.array(k))) * leg)[None, :]
             inner = green(k, dd, s.dim) * np.exp(-dd / (2 * float(data["ls"][m])))
             np.fill_diagonal(inner, 0.0)
             out[r, m] = g @ inner @ g.T

@@ -60,7 +60,6 @@ import background_metrics as bm  # noqa: E402
 import foldy_lax_reference as flr  # noqa: E402
 
 import fpcore.simulate.single_scattering as ss_mod  # noqa: E402
-from fpcore.simulate.diffuse import project_plane_waves  # noqa: E402
 from fpcore.simulate.medium import DiffuseBackground, ScatteringLayer  # noqa: E402
 
 #: Depth ranges below the surface (in ℓ_s(f_c)) over which the contrast slope is also refitted, where the fit
@@ -134,15 +133,11 @@ def model_orders(
             s.aperture_radius,
             np.random.default_rng(seed0 + r),
         )
-        out.append(bg.next())
-        ss = bg.single
-        first.append(
-            np.zeros_like(out[-1])
-            if ss is None
-            else project_plane_waves(ss.spectrum(), bg.freqs, bg.c0, bg.elements, ss.s_out, ss.axes, ss.keep)
-        )
-        if r == 0 and ss is not None:
-            print(f"  single scattering on {ss.n_o} output directions (Δs = {ss.ds:.4f})")
+        multiple, single = bg.next_orders()
+        first.append(np.zeros_like(multiple) if single is None else single)
+        out.append(multiple + first[-1])
+        if r == 0 and bg.single is not None:
+            print(f"  single scattering on {bg.single.n_o} output directions (Δs = {bg.single.ds:.4f})")
     return np.stack(out), np.stack(first)
 
 
@@ -198,23 +193,7 @@ def measure(
             r = bm.plane_wave_outputs(vg, freqs, s.elements(), sines, s.c0)
             memory[(a, b)] = bm.memory_correlation(r, sines, MEMORY_STEPS)
     # The focused reflection matrix against the in–out separation: how far from the focus the background is.
-    lam = s.c0 / s.f_c
-    focused = {
-        zl: bm.focused_profile(
-            v,
-            freqs,
-            s.elements(),
-            sines,
-            s.c0,
-            s.dim,
-            s.z_surface + zl * s.ls_c,
-            np.array(FOCUSED_SEPARATIONS) * lam,
-            contrast_half_width(s),
-            band=s.band,
-        )
-        for zl in FOCUSED_DEPTHS
-        if zl * s.ls_c < s.thickness - pulse
-    }
+    focused = {zl: p["whole"] for zl, p in focused_profiles(s, {"whole": v}, sines, freqs).items()}
     return {
         "focused": focused,
         "t": t,
@@ -244,27 +223,36 @@ def fl_orders(s: flr.Setup, data: dict[str, np.ndarray], v_fl: np.ndarray, sines
         "single": bm.confocal_profile(v1, *args, band=s.band).mean(axis=0),
         "multiple": bm.confocal_profile(v_fl - v1, *args, band=s.band).mean(axis=0),
         "focused": focused_orders(s, v_fl, v1, sines, freqs),
+        "v1": v1,
+    }
+
+
+def focused_profiles(
+    s: flr.Setup, parts: dict[str, np.ndarray], sines: np.ndarray, freqs: np.ndarray
+) -> dict[float, dict[str, np.ndarray]]:
+    """The focused matrix's profile (`background_metrics.focused_profile`, FOCUSED_SEPARATIONS) of each array in
+    `parts` at FOCUSED_DEPTHS (ℓ_s below the surface) above the slab's bottom less a pulse length."""
+    seps = np.array(FOCUSED_SEPARATIONS) * s.c0 / s.f_c
+    pulse = s.c0 / (2 * (s.band_hi - s.band_lo))
+    hw = contrast_half_width(s)
+    return {
+        zl: {
+            name: bm.focused_profile(
+                x, freqs, s.elements(), sines, s.c0, s.dim, s.z_surface + zl * s.ls_c, seps, hw, band=s.band
+            )
+            for name, x in parts.items()
+        }
+        for zl in FOCUSED_DEPTHS
+        if zl * s.ls_c < s.thickness - pulse
     }
 
 
 def focused_orders(
     s: flr.Setup, v: np.ndarray, v1: np.ndarray, sines: np.ndarray, freqs: np.ndarray
 ) -> dict[float, tuple[np.ndarray, np.ndarray]]:
-    """The focused matrix's profile (`background_metrics.focused_profile`) of the first order v1 and of the rest
-    v − v1 at FOCUSED_DEPTHS (ℓ_s below the surface, above the slab's bottom less a pulse length)."""
-    lam, pulse = s.c0 / s.f_c, s.c0 / (2 * (s.band_hi - s.band_lo))
-    seps = np.array(FOCUSED_SEPARATIONS) * lam
-    out = {}
-    for zl in FOCUSED_DEPTHS:
-        if zl * s.ls_c < s.thickness - pulse:
-            z = s.z_surface + zl * s.ls_c
-            hw = contrast_half_width(s)
-            prof = [
-                bm.focused_profile(x, freqs, s.elements(), sines, s.c0, s.dim, z, seps, hw, band=s.band)
-                for x in (v1, v - v1)
-            ]
-            out[zl] = (prof[0], prof[1])
-    return out
+    """`focused_profiles` of the first order v1 and of the rest v − v1, as (first, rest) per depth."""
+    prof = focused_profiles(s, {"first": v1, "rest": v - v1}, sines, freqs)
+    return {zl: (p["first"], p["rest"]) for zl, p in prof.items()}
 
 
 def compare(
@@ -314,6 +302,7 @@ def compare(
     kk = data["K"]
     asym = float(np.abs(kk - np.swapaxes(kk, 2, 3)).max() / np.abs(kk).max())
     return {
+        "v_fl": v_fl,
         "asym": asym,
         "setup": s,
         "data": data,
@@ -485,34 +474,23 @@ def report(res: dict[str, Any]) -> None:
     )
 
 
-def report_orders(s: flr.Setup, data: dict[str, np.ndarray], n_real: int) -> None:
-    """Foldy–Lax's focused matrix (`background_metrics.focused_profile`) split into the first order, the second
+def report_orders(res: dict[str, Any], n_real: int) -> None:
+    """Foldy–Lax's focused matrix (`focused_profiles`) split into the first order, the second
     (`foldy_lax_reference.double_scattering`) and the rest, on its first `n_real` realisations, in dB re the
-    whole at Δx = 0 (resonant scatterers: the orders interfere, so the parts need not add up)."""
+    whole at Δx = 0 (resonant scatterers: the orders interfere, so the parts need not add up). The plane waves
+    and the first order are `compare`'s."""
+    s: flr.Setup = res["setup"]
+    data = res["data"]
     sines = transmit_sines(s.dim)
     freqs = data["freqs"]
-    sub = {**data, "K": data["K"][:n_real]}
-    n = sub["K"].shape[0]
-
-    def planes(k: np.ndarray) -> np.ndarray:
-        return flr.plane_waves(k, freqs, s.elements(), sines, s.c0, s.pitch, s.dim)
-
-    v, v1, v2 = planes(sub["K"]), planes(flr.single_scattering(s, sub)), planes(flr.double_scattering(s, sub))
-    parts = (("whole", v), ("first", v1), ("second", v2), ("third and up", v - v1 - v2), ("second and up", v - v1))
-    seps = np.array(FOCUSED_SEPARATIONS) * s.c0 / s.f_c
-    pulse = s.c0 / (2 * (s.band_hi - s.band_lo))
+    n = min(n_real, data["K"].shape[0])
+    v, v1 = res["v_fl"][:n], res["fl"]["orders"]["v1"][:n]
+    k2 = flr.double_scattering(s, data, n)
+    v2 = flr.plane_waves(k2, freqs, s.elements(), sines, s.c0, s.pitch, s.dim)
+    parts = {"whole": v, "first": v1, "second": v2, "third and up": v - v1 - v2, "second and up": v - v1}
     sep = ", ".join(f"{x:g}" for x in FOCUSED_SEPARATIONS)
     print(f"  Foldy–Lax's focused matrix by order ({n} realisations), dB re the whole at Δx = 0, Δx/λ = {sep}:")
-    for zl in FOCUSED_DEPTHS:
-        if zl * s.ls_c >= s.thickness - pulse:
-            continue
-        z = s.z_surface + zl * s.ls_c
-        prof = {
-            name: bm.focused_profile(
-                x, freqs, s.elements(), sines, s.c0, s.dim, z, seps, contrast_half_width(s), band=s.band
-            )
-            for name, x in parts
-        }
+    for zl, prof in focused_profiles(s, parts, sines, freqs).items():
         ref = prof["whole"][0]
         cells = [name + " " + " ".join(f"{10 * np.log10(x / ref):+.1f}" for x in p) for name, p in prof.items()]
         print(f"    {zl:g} ℓ_s: " + "; ".join(cells))
@@ -654,7 +632,7 @@ def main(argv: list[str] | None = None) -> int:
         res = compare(dim, args.quick, args.model_realisations, layer_kw, args.match_dispersion, args.slab, ref)
         report(res)
         if args.double_scattering:
-            report_orders(res["setup"], res["data"], args.double_scattering)
+            report_orders(res, args.double_scattering)
         results.append(res)
     plot(results, Path(args.png))
     print(f"\nwrote {args.png}")

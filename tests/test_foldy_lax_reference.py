@@ -101,7 +101,8 @@ def test_second_order_is_the_direct_double_sum_and_reciprocal(tmp_path, monkeypa
     f = data["freqs"][m]
     k = 2 * np.pi * f / s.c0
     t = complex(s.strength(np.array(k)))
-    leg = [t * complex(flr._coherent_leg(data, m, np.array([p[2]]))[0]) for p in two]
+    tbar = data["T"].mean(axis=0)[m]
+    leg = [t * complex(flr._coherent_leg(tbar, data["depths"], np.array([p[2]]))[0]) for p in two]
     g = [flr.green(k, np.hypot(el[:, 0] - p[0], el[:, 2] - p[2]), 2) for p in two]
     r = float(np.hypot(*(two[0] - two[1])[[0, 2]]))
     inner = complex(flr.green(k, np.array(r), 2)) * np.exp(-r / (2 * float(data["ls"][m])))

@@ -10,7 +10,7 @@ import pytest
 from fpcore.acquisition import PlaneWaveSequence, Probe
 from fpcore.simulate.diffuse import DiffuseBackground, a_g2
 from fpcore.simulate.medium import ScatteringLayer
-from fpcore.simulate.memory import block_energy_gain, correlate_lines, effective_spread, gaussian_roots
+from fpcore.simulate.memory import block_energy_gain, correlate_lines, effective_spread, gaussian_roots, lattice_steps
 from fpcore.simulate.waves import Band, TimeWindow
 
 C0 = 1500.0
@@ -92,12 +92,13 @@ def test_background_noise_follows_the_memory_law() -> None:
 
 def test_memory_keeps_the_block_symmetric_the_retro_doubled_and_the_energy() -> None:
     """With the memory effect the block's noise is still T_ij = T_ji (packed), the exactly retro-reflected
-    plane wave still carries twice the ladder, and the elements receive the same energy (`block_energy_gain`
+    plane wave still carries twice the ladder (noise times the block's envelope factor), and the elements receive the same energy (`block_energy_gain`
     divides out the redistribution within a transmit's beam) within 0.5 dB over a few realisations."""
     bg = _rig(True)
     blk = bg.block
     assert blk is not None
-    x = np.stack([bg._block_noise()[:, 0] for _ in range(8)])  # (n, n_pairs, n_bb)
+    doubling = blk.envelopes([np.ones((blk.n_pairs, 1, 1), np.float32)])[0][:, 0]  # the block's factor on a ladder
+    x = np.stack([bg._block_noise()[:, 0] * doubling for _ in range(8)])  # (n, n_pairs, n_bb)
     i, j = blk.pairs
     p = np.mean(np.abs(x) ** 2, axis=(0, 2))
     far = np.abs(blk.inputs[j, 0] - blk.inputs[i, 0]) > 0.15  # well outside the plane-wave cone
@@ -121,7 +122,8 @@ def test_energy_gain_is_one_without_correlation_and_the_beam_overlap_with_full_c
     sines = np.stack([np.arange(-3, 4) * ds, np.zeros(7)], axis=1)  # on every grid step: L = 1
     m = np.stack([np.arange(-5, 6), np.zeros(11, dtype=int)], axis=1)
     k = 2 * np.pi * 2.2e6 / C0
-    g = block_energy_gain(el, [ds], m, sines, lambda d: np.array([1e6, 0.0]), k)
+    assert lattice_steps(sines, [ds]) == [1]
+    g = block_energy_gain(el, [ds], m, lattice_steps(sines, [ds]), lambda d: np.array([1e6, 0.0]), k)
     assert g[0] == pytest.approx(1.0, abs=1e-9)
     assert g[1] > 1.5
 

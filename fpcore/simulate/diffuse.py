@@ -55,7 +55,7 @@ import scipy.fft as sfft
 
 from ..acquisition import element_grid_axes
 from ..geometry import cosines
-from .memory import MemoryKernel, block_energy_gain, block_kernel, effective_spread, grid_kernel
+from .memory import MemoryKernel, block_energy_gain, block_kernel, effective_spread, grid_kernel, lattice_steps
 from .reciprocity import ReciprocalBlock
 from .single_scattering import SingleScatteringField
 from .waves import Band, TimeWindow
@@ -338,7 +338,7 @@ class DiffuseBackground:
             blk = self.block
             i, j = blk.pairs  # the pair (o_i, a_j), i ≤ j, stands for its reversed path (o_j, a_i) too
             env_b, self._block_g1 = self._envelopes(self.s_out[blk.rows[i]], blk.inputs[j], cone=False, paired=True)
-            self._block_env = blk.envelopes(env_b, doubled_diagonal=not layer.memory)  # (n_pairs, 1, n_bb)
+            self._block_env = blk.envelopes(env_b)  # (n_pairs, 1, n_bb): T_ij = T_ji
         # The angular memory effect (`memory`, eq. M1): the noise correlated under a common tilt of input and
         # output, D_eff at the age of a normally incident path at each time sample, k at the band's centre.
         self._memory: MemoryKernel | None = None
@@ -352,10 +352,11 @@ class DiffuseBackground:
             def beta(delta: float) -> np.ndarray:
                 return kc2 * delta**2 * d_eff
 
-            self._memory = grid_kernel(axes, keep, spacings, s, beta)
+            steps = lattice_steps(s, spacings)
+            self._memory = grid_kernel(axes, keep, spacings, s, steps, beta)
             if self.block is not None:
-                self._memory_block = block_kernel(self.block.m_inputs, spacings, s, beta)
-                g = block_energy_gain(el, spacings, self.block.m_inputs, s, beta, np.sqrt(kc2))
+                self._memory_block = block_kernel(self.block.m_inputs, spacings, steps, beta)
+                g = block_energy_gain(el, spacings, self.block.m_inputs, steps, beta, np.sqrt(kc2))
                 self._block_env = [e / np.sqrt(g).astype(np.float32) for e in self._block_env]
         self.single: SingleScatteringField | None = None
         if layer.single_scattering == "field":
@@ -377,7 +378,7 @@ class DiffuseBackground:
             )
         self.state: np.ndarray | None = None
         self.block_state: np.ndarray | None = None
-        self._frozen: np.ndarray | None = None
+        self._frozen: tuple[np.ndarray, np.ndarray | None] | None = None
         self._phase = np.exp(-2j * np.pi * self.freqs * window.t0).astype(np.complex64)
 
     @classmethod
@@ -486,12 +487,16 @@ class DiffuseBackground:
 
     def _block_noise(self) -> np.ndarray:
         """The reciprocal block's noise over its pairs i ≤ j (n_pairs, 1, n_bb): T_ji is T_ij (`reciprocity`);
-        with the memory effect T_ij = (X_ij + X_ji)/√2, X correlated along common tilts (`memory`)."""
+        with the memory effect T_ij = (X_ij + X_ji)/√2 off the diagonal and X_ii on it (unit variance, as the
+        independent draw, so that the envelopes' √2 there is the retro-reflected wave's doubling in both cases),
+        X correlated along common tilts (`memory`)."""
         assert self.block is not None
         if self._memory_block is not None:
             x = self._memory_block.draw(lambda shape: self._white(shape + (self.n_bb,)))
             i, j = self.block.pairs
-            return ((x[i, j] + x[j, i]) * np.float32(np.sqrt(0.5)))[:, None, :]
+            packed = (x[i, j] + x[j, i]) * np.float32(np.sqrt(0.5))
+            packed[self.block.diagonal] *= np.float32(np.sqrt(0.5))  # (2 X_ii)/√2 → X_ii
+            return packed[:, None, :]
         return self._white((self.block.n_pairs, 1, self.n_bb))
 
     def _project(self, aw: np.ndarray) -> np.ndarray:
@@ -548,20 +553,27 @@ class DiffuseBackground:
             self._advance()
 
     def next(self) -> np.ndarray:
-        """Advance one frame and return V (N_f, N_u, N_θ) complex64 on the band bins.
+        """Advance one frame and return V (N_f, N_u, N_θ) complex64 on the band bins: `next_orders` summed.
 
         A medium with frame_displacement = 0 is frozen: every frame repeats the first realisation.
         """
+        multiple, single = self.next_orders()
+        return multiple + single if single is not None else multiple.copy()
+
+    def next_orders(self) -> tuple[np.ndarray, np.ndarray | None]:
+        """Advance one frame and return its two parts apart, each (N_f, N_u, N_θ) complex64: the Gaussian field
+        (the orders it carries) and the beads' single scattering (None without single_scattering="field")."""
         if self._frozen is not None:
             return self._frozen
         self._advance()
-        out = self._project(self.multiple_spectrum() * self.weights[:, None, None])
+        multiple = self._project(self.multiple_spectrum() * self.weights[:, None, None])
+        single = None
         if self.single is not None:  # on its own, finer grid (single_scattering.output_grid)
             ss = self.single
-            out += project_plane_waves(ss.spectrum(), self.freqs, self.c0, self.elements, ss.s_out, ss.axes, ss.keep)
+            single = project_plane_waves(ss.spectrum(), self.freqs, self.c0, self.elements, ss.s_out, ss.axes, ss.keep)
         if self.g1 is None:
-            self._frozen, self.state, self.block_state = out, None, None
-        return out
+            self._frozen, self.state, self.block_state = (multiple, single), None, None
+        return multiple, single
 
 
 def _beads_stream(rng: np.random.Generator) -> np.random.Generator:

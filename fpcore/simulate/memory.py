@@ -30,7 +30,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["MemoryKernel", "block_kernel", "correlate_lines", "effective_spread", "gaussian_roots", "grid_kernel"]
+from .reciprocity import array_factor
+
+__all__ = [
+    "MemoryKernel",
+    "block_energy_gain",
+    "block_kernel",
+    "correlate_lines",
+    "effective_spread",
+    "gaussian_roots",
+    "grid_kernel",
+    "lattice_steps",
+]
 
 
 def effective_spread(tau: np.ndarray, ls: float, v: float, dim: int, a_g2: float) -> np.ndarray:
@@ -94,17 +105,34 @@ class MemoryKernel:
 
 
 def _roots_up_to(beta: np.ndarray, n_max: int) -> tuple[np.ndarray, ...]:
-    """gaussian_roots for every line length 0…n_max (entries 0 and 1 unused)."""
+    """gaussian_roots for every line length 0…n_max (entries 0 and 1 unused), complex64 like the noise they mix
+    (so that no frame converts them again)."""
     return tuple(
-        gaussian_roots(beta, n) if n >= 2 else np.ones((beta.size, 1, 1), np.float32) for n in range(n_max + 1)
+        (gaussian_roots(beta, n) if n >= 2 else np.ones((beta.size, 1, 1), np.float32)).astype(np.complex64)
+        for n in range(n_max + 1)
     )
 
 
-def _lattice(m: np.ndarray) -> tuple[np.ndarray, int]:
-    """Lattice indices j = (m − min)/L and the step L (the gcd of the offsets; 1 for a single value)."""
-    off = m - m.min()
-    step = int(np.gcd.reduce(off)) if np.any(off) else 1
-    return off // step, step
+def _grid_offsets(sines: np.ndarray, spacings: list[float]) -> list[np.ndarray]:
+    """Each transmit's integer offset on the output grid per lateral axis; ValueError when one is off the grid."""
+    si = np.asarray(sines, dtype=np.float64)
+    out = []
+    for d, ds in enumerate(spacings):
+        m = np.rint(si[:, d] / ds).astype(np.int64)
+        if not np.allclose(m * ds, si[:, d], atol=1e-7, rtol=0.0):
+            raise ValueError("sines: expected every transmit on the output grid (memory effect: cbs=True aligns it)")
+        out.append(m)
+    return out
+
+
+def lattice_steps(sines: np.ndarray, spacings: list[float]) -> list[int]:
+    """The transmits' lattice step L per lateral axis, in output-grid steps (the gcd of their offsets; 1 for a
+    single transmit along an axis). Raises ValueError when a transmit is off the output grid."""
+    steps = []
+    for m in _grid_offsets(sines, spacings):
+        off = m - m.min()
+        steps.append(int(np.gcd.reduce(off)) if np.any(off) else 1)
+    return steps
 
 
 def grid_kernel(
@@ -112,22 +140,20 @@ def grid_kernel(
     keep: np.ndarray,
     spacings: list[float],
     sines: np.ndarray,
+    steps: list[int],
     beta_per_step2: Callable[[float], np.ndarray],
 ) -> MemoryKernel:
     """The kernel of the background's main grid (outputs `axes`/`keep` × transmits `sines`), correlated along
-    (o + L δ_o, θ + 1) per lateral axis, L the transmits' lattice step in output-grid steps; `beta_per_step2(δ)`
-    gives β(t) = k² δ² D_eff(τ(t)) for a tilt δ. Raises ValueError when a transmit is off the output grid."""
-    si = np.asarray(sines, dtype=np.float64)
+    (o + L δ_o, θ + 1) per lateral axis, L = `steps` the transmits' lattice step in output-grid steps
+    (`lattice_steps`); `beta_per_step2(δ)` gives β(t) = k² δ² D_eff(τ(t)) for a tilt δ."""
     n_ax = len(axes)
     shape_o = tuple(a.size for a in axes)
     flat = np.flatnonzero(keep)
     o_idx = np.unravel_index(flat, shape_o)  # each kept output's grid index per axis
     t_idx, n_t, lines = [], [], []
-    for d in range(n_ax):
-        m = np.rint(si[:, d] / spacings[d]).astype(np.int64)
-        if not np.allclose(m * spacings[d], si[:, d], atol=1e-7, rtol=0.0):
-            raise ValueError("sines: expected every transmit on the output grid (memory effect: cbs=True aligns it)")
-        j, step = _lattice(m)
+    for d, m in enumerate(_grid_offsets(sines, spacings)):
+        step = steps[d]
+        j = (m - m.min()) // step  # the transmit's lattice index
         t_idx.append(j)
         n_t.append(int(j.max()) + 1)
         lines.append((d, n_ax + d, step, 1, _roots_up_to(beta_per_step2(step * spacings[d]), n_t[-1])))
@@ -136,23 +162,21 @@ def grid_kernel(
 
 
 def block_kernel(
-    m_inputs: np.ndarray, spacings: list[float], sines: np.ndarray, beta_per_step2: Callable[[float], np.ndarray]
+    m_inputs: np.ndarray, spacings: list[float], steps: list[int], beta_per_step2: Callable[[float], np.ndarray]
 ) -> MemoryKernel:
     """The kernel of the reciprocal block (`reciprocity.ReciprocalBlock`): rows o_i = −a_i and inputs a_j given
     by their integer grid offsets `m_inputs` (P, 2); a common tilt (o_i + δ, a_j + δ) is (m_i − 1, m_j + 1) per
-    axis, so the lines are m_i + m_j = const. Only tilts by whole steps L of the transmits' lattice (`sines`)
+    axis, so the lines are m_i + m_j = const. Only tilts by whole steps L of the transmits' lattice (`steps`)
     are correlated (stride L), as on the main grid, where the transmits are the only inputs; what remains of
     the correlation within a transmit's beam (L = 1 under a small array) is divided out of the energy by
     `block_energy_gain`. `index` reads the full (P, P) table X_ij."""
     m = np.asarray(m_inputs, dtype=np.int64)
-    si = np.asarray(sines, dtype=np.float64)
     n_ax = len(spacings)
     lo = m[:, :n_ax].min(axis=0)
     b = m[:, :n_ax] - lo[None, :]
     size = tuple(int(x) for x in b.max(axis=0) + 1)
     lines = []
-    for d in range(n_ax):
-        _, step = _lattice(np.rint(si[:, d] / spacings[d]).astype(np.int64))
+    for d, step in enumerate(steps):
         n_max = -(-size[d] // step)
         lines.append((d, n_ax + d, -1, step, _roots_up_to(beta_per_step2(step * spacings[d]), n_max)))
     index = tuple(b[:, d][:, None] for d in range(n_ax)) + tuple(b[:, d][None, :] for d in range(n_ax))
@@ -163,7 +187,7 @@ def block_energy_gain(
     elements: np.ndarray,
     spacings: list[float],
     m_inputs: np.ndarray,
-    sines: np.ndarray,
+    steps: list[int],
     beta_per_step2: Callable[[float], np.ndarray],
     k: float,
 ) -> np.ndarray:
@@ -172,31 +196,24 @@ def block_energy_gain(
     A transmit mixes its lobe's inputs, A(o_i, θ) = Σ_j W_θj T_ij (`reciprocity`), so with (M1) two outputs n
     grid steps apart, fed by (i, j) and (i + n, j − n) on one line, are correlated by C(n) ρ_B(n), ρ_B the
     transmit beam's autocorrelation on the grid; the elements then receive Σ_n B(n Δs) ρ_B(n) C(n) times the
-    independent outputs' energy (B the array factor at wavenumber k, per axis, the product over axes). The
+    independent outputs' energy (B the array factor at wavenumber k, `reciprocity.array_factor`, per axis, the
+    product over axes; C of (M1) at whole lattice steps L = `steps` only, as in `block_kernel`). The
     envelope already sets the energy the array receives from the halo (transport theory), so the block's
     envelopes are divided by √G: the correlation redistributes the energy and does not add to it."""
     m = np.asarray(m_inputs, dtype=np.int64)
-    si = np.asarray(sines, dtype=np.float64)
     gain = None
     for d, ds in enumerate(spacings):
         half = int(np.ptp(m[:, d]))
         n = np.arange(-half, half + 1)
         offs = np.zeros((n.size, 2))
         offs[:, d] = n * ds
-        b = array_factor_1d(elements, offs, k)  # the receive side's B(nΔs) and the transmit beam on the grid alike
+        b = array_factor(elements, offs, np.array([k]))[:, 0]  # the receive side's B(nΔs), the transmit beam alike
         full = np.correlate(b, b, mode="full")  # Σ_m B(m + n) B*(m), lags −2·half … 2·half
         rho = full[half : 3 * half + 1] / np.sum(np.abs(b) ** 2)  # lags −half … half
-        _, step = _lattice(np.rint(si[:, d] / ds).astype(np.int64))
-        stride = step
-        beta = beta_per_step2(stride * ds)
-        c = np.where((n % stride == 0)[None, :], np.exp(-beta[:, None] * (n[None, :] / stride) ** 2), 0.0)
+        step = steps[d]
+        beta = beta_per_step2(step * ds)
+        c = np.where((n % step == 0)[None, :], np.exp(-beta[:, None] * (n[None, :] / step) ** 2), 0.0)
         g = c @ np.real(np.conj(b) * rho)  # outputs n steps apart are weighted by B(−nΔs) = B*(nΔs) (e^{−ik s_o·u})
         gain = g if gain is None else gain * g
     assert gain is not None
     return np.maximum(gain, 1e-3)
-
-
-def array_factor_1d(elements: np.ndarray, offsets: np.ndarray, k: float) -> np.ndarray:
-    """B(δ) = (1/N_u) Σ_u e^{ik δ·u} at one wavenumber for sine offsets δ (n, 2): (n,) complex."""
-    el = np.asarray(elements, dtype=np.float64)[:, :2]
-    return np.mean(np.exp(1j * k * (np.asarray(offsets, dtype=np.float64) @ el.T)), axis=1)

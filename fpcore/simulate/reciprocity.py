@@ -137,16 +137,14 @@ class ReciprocalBlock:
         self.n_pairs = int(self.pairs[0].size)
         self.diagonal = self.pairs[0] == self.pairs[1]  # (o_i, a_i) = (−a_i, a_i): exact retro-reflection
 
-    def envelopes(self, ladder: list[np.ndarray], doubled_diagonal: bool = True) -> list[np.ndarray]:
+    def envelopes(self, ladder: list[np.ndarray]) -> list[np.ndarray]:
         """The block's packed envelopes (module doc) from the ladder envelope of each pair i ≤ j (n_pairs, 1, …):
         √2 on the diagonal, where the exactly retro-reflected plane wave (−a_i, a_i) is its own reversed path
-        (⟨|T_ii|²⟩ = 2 × ladder), unless `doubled_diagonal` is False (a noise T_ij = (X_ij + X_ji)/√2 whose
-        diagonal already has variance 2: `memory`). One envelope per packed pair serves T_ij and T_ji alike."""
+        (⟨|T_ii|²⟩ = 2 × ladder). One envelope per packed pair serves T_ij and T_ji alike."""
         out = []
         for env in ladder:
             e = env.copy()
-            if doubled_diagonal:
-                e[self.diagonal] *= np.float32(np.sqrt(2.0))
+            e[self.diagonal] *= np.float32(np.sqrt(2.0))
             out.append(e)
         return out
 
