@@ -92,8 +92,9 @@ def test_background_noise_follows_the_memory_law() -> None:
 
 def test_memory_keeps_the_block_symmetric_the_retro_doubled_and_the_energy() -> None:
     """With the memory effect the block's noise is still T_ij = T_ji (packed), the exactly retro-reflected
-    plane wave still carries twice the ladder (noise times the block's envelope factor), and the elements receive the same energy (`block_energy_gain`
-    divides out the redistribution within a transmit's beam) within 0.5 dB over a few realisations."""
+    plane wave still carries twice the ladder (noise times the block's envelope factor), and the elements
+    receive the same energy (`block_energy_gain` divides out the redistribution within a transmit's beam)
+    within 0.5 dB over a few realisations."""
     bg = _rig(True)
     blk = bg.block
     assert blk is not None
