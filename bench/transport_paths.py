@@ -1,0 +1,254 @@
+"""Transport Monte Carlo of the multiple scattering (fpcore.simulate.paths) on the Foldy–Lax reference's rig:
+an independent check of what the statistical background gets right and wrong (docs/design.md §6.6).
+
+    .venv/bin/python bench/transport_paths.py                                  # 2-D reference, 6 × 3000 walks
+    .venv/bin/python bench/transport_paths.py --reference out/bench/fl_reference_3d_deep.npz --walks 6000
+
+The paths are drawn in the reference's slab (same ℓ_s(f) per frequency, lossless), their legs to the
+elements through the coherent wave along each straight ray, the transmits synthesised from the elements as
+the probe fires them (`foldy_lax_reference.plane_waves`' weights). Printed side by side for Foldy–Lax, the
+paths and the model (`validate_background.model_orders`, the default layer with --slab): the focused
+matrix's profile against the in–out separation of the orders ≥ 2 at 1–4 ℓ_s, the confocal background of the
+orders ≥ 2 by depth, and the four agreement figures of the issue (`validate_background.measure`) on the
+paths' field (their own first order plus the orders ≥ 2).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import background_metrics as bm  # noqa: E402
+import foldy_lax_reference as flr  # noqa: E402
+import validate_background as vb  # noqa: E402
+
+from fpcore.simulate.paths import (  # noqa: E402
+    Paths,
+    PlaneWaveBeams,
+    StraightRays,
+    Synthesised,
+    draw_paths,
+    path_spectra,
+)
+
+
+def slab_paths(s: flr.Setup, n_walks: int, rng: np.random.Generator) -> Paths:
+    """Walks filling the reference's slab (first scatterings uniform in it), cut at the record's end."""
+    return draw_paths(
+        rng,
+        s.dim,
+        s.ls_c,
+        n_walks,
+        l_max=s.c0 * s.t_end,
+        z_top=s.z_surface,
+        start_half_width=s.width / 2,
+        start_depth=s.thickness,
+        thickness=s.thickness,
+        half_width=s.width / 2,
+    )
+
+
+def path_realisations(
+    s: flr.Setup, data: dict[str, np.ndarray], sines: np.ndarray, n_real: int, n_walks: int, seed: int = 2000
+) -> tuple[np.ndarray, np.ndarray]:
+    """(orders ≥ 2, first order), each (n_real, N_f, N_u, N_θ), one path draw per realisation."""
+    rays = StraightRays(s.elements(), s.z_surface, s.dim)
+    tx = Synthesised(sines, s.pitch)
+    multi, first = [], []
+    t0 = time.perf_counter()
+    for r in range(n_real):
+        p = slab_paths(s, n_walks, np.random.default_rng(seed + r))
+        multi.append(path_spectra(p, data["freqs"], s.c0, data["ls"], rays, tx))
+        first.append(path_spectra(p, data["freqs"], s.c0, data["ls"], rays, tx, first_order=True))
+        print(f"  paths {r + 1}/{n_real}: {p.n_walks} walks, {p.n_paths} path ends, {time.perf_counter() - t0:.0f} s")
+    return np.stack(multi), np.stack(first)
+
+
+def headline(quick: bool, n_real: int, n_walks: int, frame: int = 0) -> None:
+    """The sinking-sphere rig: the paths' orders ≥ 2 against the model's Gaussian field, on its own medium
+    (ℓ_s(f), ℓ_a, the interface), by depth, and what that does to the spheres' confocal contrast."""
+    import fpcore.simulate as sim
+
+    sc = sim.scenario("sinking-sphere", quick=quick, n_frames=1)
+    layer = sc.layer
+    assert layer is not None
+    el, sines, freqs = sc.probe.positions, sc.sequence.sines, sc.freqs
+    aperture = float(np.sqrt(np.prod(sc.probe.aperture)))
+    t_leg = float(np.sqrt(1.0 - layer.reflection(sc.rho0, sc.c0) ** 2))  # the interface, one way
+    rays = StraightRays(el, layer.z_surface, 3, t_leg)
+    tx = PlaneWaveBeams(sines, aperture, layer.z_surface, sc.c0 / sc.pulse.centre, t_leg)
+    ls_f = np.asarray(layer.ls_at(freqs))
+    t_end = sc.window.t0 + sc.window.duration
+    l_max = sc.c0 * t_end - 2 * layer.z_surface
+    reach = 0.5 * aperture + 20e-3 * float(np.max(np.abs(sines) / np.sqrt(1 - (sines**2).sum(1))[:, None])) + 5e-3
+    lext_c = float(layer.l_ext_at(2.2e6))
+    v_p = []
+    t0 = time.perf_counter()
+    for r in range(n_real):
+        p = draw_paths(
+            np.random.default_rng(3000 + r),
+            3,
+            float(layer.ls_at(2.2e6)),
+            n_walks,
+            l_max,
+            layer.z_surface,
+            start_half_width=reach,
+            start_depth=12 * lext_c,
+            start_decay=lext_c,
+        )
+        v_p.append(path_spectra(p, freqs, sc.c0, ls_f, rays, tx, la=layer.la))
+        print(f"  paths {r + 1}/{n_real}: {p.n_walks} walks, {p.n_paths} path ends, {time.perf_counter() - t0:.0f} s")
+    bg = sc.without_targets()._background()
+    assert bg is not None
+    v_g, v_1 = [], []
+    for r in range(n_real):
+        fork = bg.fork(np.random.default_rng(4000 + r))
+        mult, single = fork.next_orders()
+        v_g.append(mult)
+        v_1.append(single)
+    parts = {"paths": np.stack(v_p), "model": np.stack(v_g), "speckle": np.stack(v_1)}
+    flr.OUT.mkdir(parents=True, exist_ok=True)
+    np.savez(flr.OUT / f"paths_headline_{'quick' if quick else 'full'}.npz", freqs=freqs, **parts)
+    depths = layer.z_surface + np.arange(1, 9) * layer.ls
+    conf = {
+        name: bm.confocal_profile(v, freqs, el, sines, sc.c0, 3, depths, 5e-3, n_lateral=7, band=sc.pulse).mean(axis=0)
+        for name, v in parts.items()
+    }
+    print(f"\nsinking-sphere ({'quick' if quick else 'full'}): confocal background by depth (patch ±5 mm)")
+    print("  depth   paths/model(orders≥2)  speckle/model  (speckle+paths)/(speckle+model) = C_I(model)/C_I(paths)")
+    for j, z in enumerate(depths - layer.z_surface):
+        fog_m, fog_p = conf["speckle"][j] + conf["model"][j], conf["speckle"][j] + conf["paths"][j]
+        print(
+            f"  {z / layer.ls:3.0f} ℓ_s  {db(conf['paths'][j] / conf['model'][j]):+6.1f} dB"
+            f"  {db(conf['speckle'][j] / conf['model'][j]):+6.1f} dB  {db(fog_p / fog_m):+6.1f} dB"
+        )
+    contrast_slopes(sc, parts)
+    t, e_p = bm.time_envelope(parts["paths"], freqs, sc.pulse)
+    _, e_m = bm.time_envelope(parts["model"], freqs, sc.pulse)
+    t_on = 2 * layer.z_surface / sc.c0
+    print("  time envelope of the orders ≥ 2, paths/model:")
+    for tt in (1, 2, 5, 10, 20, 30, 40, 50):
+        i = int(np.argmin(np.abs(t - t_on - tt * 1e-6)))
+        print(f"    +{tt:2d} µs: {db(e_p[i] / e_m[i]):+5.1f} dB")
+
+
+def contrast_slopes(sc: Any, parts: dict[str, np.ndarray]) -> None:
+    """The confocal contrast of a point target on the axis at 1–5 ℓ_s (`validate_simulate`'s measure) over the
+    fog of the model (speckle + Gaussian field) and over the fog of the paths (speckle + paths): −d ln C_I/dz ×
+    ℓ_s(f_c), the paper's eq. (1) law, with the jackknife over realisations."""
+    import validate_simulate as vs
+
+    layer, band = sc.layer, sc.pulse
+    freqs = sc.freqs
+    g = np.linspace(-0.45, 0.45, 13)
+    s_out = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
+    ls_c = float(layer.ls_at(band.centre))
+    depths = np.arange(1, 6) * ls_c
+    spec = band.spectrum(freqs)
+    fogs = {
+        "model (speckle + Gaussian field)": parts["speckle"] + parts["model"],
+        "paths (speckle + transport paths)": parts["speckle"] + parts["paths"],
+    }
+    for name, fog in fogs.items():
+        i_t, water, m = vs._point_target_and_fog(
+            layer, sc.probe, sc.sequence.sines, freqs, sc.c0, spec, s_out, list(fog), depths, 3
+        )
+        e = i_t / water
+
+        def slope(fog_mean: np.ndarray, e: np.ndarray = e) -> float:
+            return -float(np.polyfit(depths, np.log(e / fog_mean), 1)[0]) * ls_c
+
+        k, se = slope(m.mean(axis=1)), bm.jackknife_se(slope, m.T)
+        print(
+            f"  contrast slope over 1–5 ℓ_s, {name}: −d ln C_I/dz × ℓ_s = {k:.2f} ± {se:.2f}; "
+            f"fog at 2…5 ℓ_s re 1 ℓ_s: "
+            + ", ".join(f"{db(m[j].mean() / m[0].mean()):+.1f}" for j in range(1, 5))
+            + " dB"
+        )
+
+
+def db(x: np.ndarray) -> np.ndarray:
+    return 10 * np.log10(np.maximum(x, 1e-300))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--reference", type=Path, default=flr.default_path(2, False))
+    ap.add_argument("--walks", type=int, default=3000, help="walks per realisation")
+    ap.add_argument("--realisations", type=int, default=6)
+    ap.add_argument("--model-realisations", type=int, default=8)
+    ap.add_argument("--scenario", action="store_true", help="the sinking-sphere rig instead of a Foldy–Lax one")
+    ap.add_argument("--full", action="store_true", help="with --scenario: the full 32×32 array")
+    args = ap.parse_args(argv)
+    if args.scenario:
+        headline(not args.full, args.realisations, args.walks)
+        return 0
+    if not args.reference.exists():
+        print(f"--reference: expected a Foldy–Lax file (bench/foldy_lax_reference.py), got {args.reference}")
+        return 2
+    s, data = flr.load(args.reference)
+    freqs, sines = data["freqs"], vb.transmit_sines(s.dim)
+    v_fl = flr.plane_waves(data["K"], freqs, s.elements(), sines, s.c0, s.pitch, s.dim)
+    v_fl1 = flr.plane_waves(flr.single_scattering(s, data), freqs, s.elements(), sines, s.c0, s.pitch, s.dim)
+    v_p, v_p1 = path_realisations(s, data, sines, args.realisations, args.walks)
+    expo = -float(np.polyfit(np.log(freqs / s.f_c), np.log(data["ls"]), 1)[0])
+    layer_kw: dict[str, Any] = dict(
+        envelope="diffusion",
+        cbs=True,
+        single_scattering="field",
+        angular="halo",
+        ls_exponent=round(expo, 3),
+        f_ref=s.f_c,
+        thickness=s.thickness,
+        width=s.width,
+    )
+    v_m, v_m1 = vb.model_orders(s, sines, args.model_realisations, layer_kw)
+    parts = {"FL": v_fl - v_fl1, "paths": v_p, "model": v_m - v_m1, "FL1": v_fl1, "paths1": v_p1, "model1": v_m1}
+    prof = vb.focused_profiles(s, parts, sines, freqs)
+    print(f"\n{s.dim}-D: focused matrix ⟨|R(x − Δx/2, x + Δx/2)|²⟩, dB re Foldy–Lax's orders ≥ 2 at Δx = 0")
+    print("Δx (λ):        " + " ".join(f"{x:6.1f}" for x in vb.FOCUSED_SEPARATIONS))
+    for zl, p in prof.items():
+        ref = p["FL"][0]
+        for name in parts:
+            print(f"{zl:.0f} ℓ_s {name:7s} " + " ".join(f"{v:6.1f}" for v in db(p[name] / ref)))
+    half = vb.contrast_half_width(s)
+    depths = data["depths"]
+    args_c = (freqs, s.elements(), sines, s.c0, s.dim, depths, half)
+    conf = {n: bm.confocal_profile(parts[n], *args_c, band=s.band).mean(axis=0) for n in ("FL", "paths", "model")}
+    print("\nconfocal background of the orders ≥ 2 (dB re Foldy–Lax) by depth below the surface:")
+    for j, z in enumerate(depths - s.z_surface):
+        zl = z / s.ls_c
+        if 0.4 <= zl <= 5.1:
+            rel = {n: float(db(conf[n][j] / conf["FL"][j])) for n in ("paths", "model")}
+            print(f"  {zl:4.1f} ℓ_s: paths {rel['paths']:+5.1f}  model {rel['model']:+5.1f}")
+    t, e_fl = bm.time_envelope(v_fl - v_fl1, freqs, s.band)
+    _, e_p = bm.time_envelope(v_p, freqs, s.band)
+    _, e_m = bm.time_envelope(v_m - v_m1, freqs, s.band)
+    t_on = 2 * s.z_surface / s.c0
+    print("\ntime envelope of the orders ≥ 2 (dB re Foldy–Lax):")
+    for tt in (1, 2, 5, 10, 20, 30, 40):
+        i = int(np.argmin(np.abs(t - t_on - tt * 1e-6)))
+        if t[i] < s.t_end:
+            print(f"  +{tt:2d} µs: paths {db(e_p[i] / e_fl[i]):+5.1f}  model {db(e_m[i] / e_fl[i]):+5.1f}")
+    echo = vb.fl_echo(data, freqs, s.band)
+    res = vb.measure(v_p + v_p1, s, sines, freqs, depths, echo)
+    fl = vb.measure(v_fl, s, sines, freqs, depths, echo)
+    print("\nthe four figures, paths (own first order + orders ≥ 2) against Foldy–Lax:")
+    for name, get in (
+        ("frequency-correlation half-width (kHz)", lambda x: float(x["fc"]["width"]) / 1e3),
+        ("CBS over the ladder", lambda x: float(x["cbs"]["enhancement_ladder"])),
+        ("contrast slope × ℓ_s", lambda x: -float(x["ci"]["slope"]) * s.ls_c),
+    ):
+        print(f"  {name}: paths {get(res):.2f}, Foldy–Lax {get(fl):.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

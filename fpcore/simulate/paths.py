@@ -1,0 +1,437 @@
+"""Multiple scattering as explicit scattering paths: a transport Monte Carlo of the ladder, each path
+with its reversed partner (docs/design.md §6.6).
+
+Physics. In a medium of independent point scatterers (density n, strength t, σ_s = n⁻¹/ℓ_s) the
+scattering orders n ≥ 2 of the field from a source v to a receiver u are the sums over sequences of
+distinct scatterers r₁ … r_n,
+
+    K_n(u, v) = Σ G_c(u, r_n) t G_m(r_n, r_{n−1}) t … t G_c(r₁, v),
+
+with the coherent (extinguished) wave on the legs to and from the array and the mean Green function
+G_m = G e^{−d/(2ℓ_ext)} between scatterers (paper Supplementary S1). Averaged over the scatterers'
+positions, |K_n|² keeps the sequences paired with themselves (the ladder) and with their reverse
+(the most-crossed diagrams: coherent backscattering, reciprocity). The ladder is an integral over
+the sequences whose measure is a random walk: in 3-D, n|t|²|G(d)|² e^{−d/ℓ_s} d³r =
+(1/ℓ_s) e^{−d/ℓ_s} dd dΩ/(4π) (2-D: dφ/(2π), with the far-field |G|² = 1/(8πkd)), an exponential
+step and an isotropic direction. So a walk started at r₁ drawn with density π₁ and weighted by
+n|t|²/(N_w π₁) samples the ladder without bias; each of its events r_n (n ≥ 2) ends one path of
+internal length L_n = Σ steps. A path contributes, at wavenumber k,
+
+    K(u, v) ∋ (A/√2) [G_c(u, r_n) G_c(r₁, v) + G_c(u, r₁) G_c(r_n, v)],  |A|² = n|t|²/(N_w π₁) w(f),
+
+A's phase e^{−ikL} (the path's own length; distinct paths are then incoherent as in a random medium),
+w(f) = (ℓ_ref/ℓ_s(f))^{n−1} e^{−L(1/ℓ_s(f) − 1/ℓ_ref)} e^{−L/ℓ_a} re-weighting walks drawn at ℓ_ref to
+the frequency's own ℓ_s(f) and absorption. Summed, ⟨|K|²⟩ is the ladder plus its reversed partner:
+twice the ladder where the two ends coincide (coherent backscattering), the ladder elsewhere.
+
+What it gives, without a model of the envelope: the time envelope and frequency correlation of the
+walk's path lengths, the halo's lateral spread and the memory effect (explicit end points), reciprocity
+and coherent backscattering (reversed partners), and — what a field leaving the surface misses — paths
+whose both ends lie at depth, which a focus there collects (the focused matrix's peak of low orders).
+What it leaves out: recurrent scattering and the interference between orders of strong (resonant)
+scatterers, near-field coupling (d ≲ λ), and every order's fluctuation about the ladder (a finite
+number of walks; the first order is the single-scattering field's). Checked against Foldy–Lax in
+bench/transport_paths.py.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..kernel import default_threads
+from ..kernel_presum_loops import _jit, nb, pool, split
+
+__all__ = ["Paths", "PlaneWaveBeams", "StraightRays", "Synthesised", "draw_paths", "far_green", "path_spectra"]
+
+
+@dataclass(frozen=True)
+class Paths:
+    """Walks in a medium: the first scattering of each walk, `start` (N_w, 3), and every later event as a
+    path end — `walk` (P,) the walk it belongs to (non-decreasing), `end` (P, 3), `order` (P,) n ≥ 2,
+    `length` (P,) the internal length L between the first and the last scattering (m). Steps were drawn
+    with ℓ_s = `ls_ref`; `start_weight` (N_w,) is 1/(N_w π₁(r₁)), the measure each walk stands for (m³; m² in
+    2-D)."""
+
+    dim: int
+    start: np.ndarray
+    walk: np.ndarray
+    end: np.ndarray
+    order: np.ndarray
+    length: np.ndarray
+    ls_ref: float
+    start_weight: np.ndarray
+
+    @property
+    def n_walks(self) -> int:
+        return int(self.start.shape[0])
+
+    @property
+    def n_paths(self) -> int:
+        return int(self.end.shape[0])
+
+
+def draw_paths(
+    rng: np.random.Generator,
+    dim: int,
+    ls_ref: float,
+    n_walks: int,
+    l_max: float,
+    z_top: float,
+    start_half_width: float,
+    start_depth: float,
+    thickness: float = np.inf,
+    half_width: float = np.inf,
+    start_decay: float | None = None,
+) -> Paths:
+    """Walks in the medium z_top < z < z_top + thickness, |x| (and |y|) ≤ half_width (module doc).
+
+    First scatterings uniform over |x|, |y| ≤ start_half_width, and in depth uniform over [0, start_depth]
+    below z_top, or, with `start_decay` (m), with density ∝ e^{−d/start_decay} there (importance sampling by
+    the incident wave's extinction). A walk ends when it leaves the medium or its internal length exceeds
+    l_max (no later arrival is recorded)."""
+    if dim not in (2, 3):
+        raise ValueError(f"dim: expected 2 or 3, got {dim}")
+    for name, v in (("ls_ref", ls_ref), ("l_max", l_max), ("start_half_width", start_half_width)):
+        if not v > 0:
+            raise ValueError(f"{name}: expected a length > 0, got {v}")
+    if not 0 < start_depth <= thickness:
+        raise ValueError(f"start_depth: expected a depth in (0, thickness={thickness}], got {start_depth}")
+    if n_walks < 1:
+        raise ValueError(f"n_walks: expected at least 1, got {n_walks}")
+    w = start_half_width
+    x = rng.uniform(-w, w, n_walks)
+    y = rng.uniform(-w, w, n_walks) if dim == 3 else np.zeros(n_walks)
+    area = (2 * w) ** (dim - 1)
+    if start_decay is None:
+        d = rng.uniform(0.0, start_depth, n_walks)
+        density = np.full(n_walks, 1.0 / (area * start_depth))
+    else:  # truncated exponential on [0, start_depth]
+        mass = -np.expm1(-start_depth / start_decay)
+        d = -start_decay * np.log1p(-rng.uniform(0.0, 1.0, n_walks) * mass)
+        density = np.exp(-d / start_decay) / (start_decay * mass * area)
+    start = np.stack([x, y, z_top + d], axis=1)
+    pos, length = start.copy(), np.zeros(n_walks)
+    alive = np.arange(n_walks)
+    ev_w, ev_p, ev_n, ev_l = [], [], [], []
+    order = 1
+    while alive.size:
+        order += 1
+        step = rng.exponential(ls_ref, alive.size)
+        if dim == 2:
+            phi = rng.uniform(0.0, 2 * np.pi, alive.size)
+            u = np.stack([np.cos(phi), np.zeros_like(phi), np.sin(phi)], axis=1)
+        else:
+            u = rng.standard_normal((alive.size, 3))
+            u /= np.linalg.norm(u, axis=1, keepdims=True)
+        p = pos[alive] + step[:, None] * u
+        lw = length[alive] + step
+        inside = (p[:, 2] > z_top) & (p[:, 2] < z_top + thickness) & (lw <= l_max)
+        inside &= np.abs(p[:, 0]) <= half_width
+        if dim == 3:
+            inside &= np.abs(p[:, 1]) <= half_width
+        alive = alive[inside]
+        pos[alive], length[alive] = p[inside], lw[inside]
+        ev_w.append(alive)
+        ev_p.append(p[inside])
+        ev_n.append(np.full(alive.size, order, dtype=np.int32))
+        ev_l.append(lw[inside])
+    walk = np.concatenate(ev_w)  # the loop ran at least once (n_walks ≥ 1)
+    srt = np.argsort(walk, kind="stable")  # events grouped by walk, in order within each
+    return Paths(
+        dim,
+        start,
+        walk[srt],
+        np.concatenate(ev_p)[srt],
+        np.concatenate(ev_n)[srt],
+        np.concatenate(ev_l)[srt],
+        float(ls_ref),
+        1.0 / (n_walks * density),
+    )
+
+
+def far_green(k: float, d: np.ndarray, dim: int) -> np.ndarray:
+    """G(d) for kd ≫ 1: e^{−ikd}/(4πd) (3D, exact), (−i/4)√(2/(πkd)) e^{−i(kd − π/4)}(1 − i/(8kd)) (2D, the
+    Hankel function's large-argument form, relative error < 1e-3 for kd > 3)."""
+    if dim == 3:
+        return np.exp(-1j * k * d) / (4 * np.pi * d)
+    x = k * d
+    return -0.25j * np.sqrt(2 / (np.pi * x)) * np.exp(-1j * (x - np.pi / 4)) * (1 - 1j / (8 * x))
+
+
+@dataclass(frozen=True)
+class StraightRays:
+    """The coherent legs between points in the medium (z > z_surface) and receivers above it (z < z_surface):
+    G along the straight ray (`far_green`), times `factor` (the interface's one-way transmission) and the
+    extinction e^{−d_b/(2ℓ_ext)} over the ray's length d_b below the surface (paper S1: ⟨ψ⟩ ∝ e^{−d/(2ℓ_ext)})."""
+
+    receivers: np.ndarray  # (N_u, 3)
+    z_surface: float
+    dim: int
+    factor: float = 1.0
+
+    def geometry(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(distance, length below the surface), each (N, N_u) float32."""
+        el = np.asarray(self.receivers, dtype=np.float64)
+        diff = np.asarray(points, dtype=np.float64)[:, None, :] - el[None, :, :]
+        dist = np.linalg.norm(diff, axis=2) if self.dim == 3 else np.hypot(diff[..., 0], diff[..., 2])
+        frac = (diff[..., 2] - (self.z_surface - el[None, :, 2])) / np.maximum(diff[..., 2], 1e-12)
+        return dist.astype(np.float32), (dist * np.clip(frac, 0.0, 1.0)).astype(np.float32)
+
+    def values(self, k: float, lext: float, points: np.ndarray) -> np.ndarray:
+        """G_c(u, r) (N, N_u) complex64 at one wavenumber."""
+        dist, below = self.geometry(points)
+        g = far_green(k, dist.astype(np.float64), self.dim) * np.exp(-below / (2 * lext))
+        return (self.factor * g).astype(np.complex64)
+
+
+@dataclass(frozen=True)
+class Synthesised:
+    """Transmits synthesised by the receivers as the probe fires them: the element v emits with weight
+    q_v(θ) = 2ik c_θ p^{d−1} e^{−ik a·v}, a planar monopole layer of density 2ikc radiating the unit plane wave
+    e^{−ik(a·ρ + c z)} (bench/foldy_lax_reference.py); the incident field at r is Σ_v G_c(r, v) q_v(θ)."""
+
+    sines: np.ndarray  # (N_θ, 2)
+    pitch: float
+
+    def weights(self, k: float, receivers: np.ndarray, dim: int) -> np.ndarray:
+        """q (N_u, N_θ) complex64."""
+        s = np.asarray(self.sines, dtype=np.float64)
+        c = np.sqrt(1.0 - (s**2).sum(axis=1))
+        ph = np.asarray(receivers, dtype=np.float64)[:, :2] @ s.T
+        return (2j * k * c[None, :] * self.pitch ** (dim - 1) * np.exp(-1j * k * ph)).astype(np.complex64)
+
+
+@dataclass(frozen=True)
+class PlaneWaveBeams:
+    """Unit plane waves e^{−ik(a·ρ + c z)} (3-D) confined to a beam: the aperture (side `aperture`) plus its
+    diffraction spread λ_c z/(2·aperture) (λ_c = `wavelength`), steered (centred on z tan θ), with cosine edges
+    over ±15 % of the half-width (`single_scattering`'s beam); times `factor` (the interface's one-way
+    transmission) and the extinction e^{−(z − z_s)/(2 c_θ ℓ_ext)} of the oblique path below the surface."""
+
+    sines: np.ndarray  # (N_θ, 2)
+    aperture: float
+    z_surface: float
+    wavelength: float  # λ_c of the diffraction spread
+    factor: float = 1.0
+
+
+def _amplitudes(
+    paths: Paths, lo: int, hi: int, b0: int, k: np.ndarray, ls: np.ndarray, la: float, nt2: np.ndarray
+) -> np.ndarray:
+    """A (hi − lo, N_f) complex64 of the path ends lo…hi (module doc): √(n|t|² start_weight w(f)/2) e^{−ikL}."""
+    n, length = paths.order[lo:hi, None], paths.length[lo:hi, None]
+    log_w = (n - 1) * np.log(paths.ls_ref / ls[None, :]) - length * (1.0 / ls[None, :] - 1.0 / paths.ls_ref + 1.0 / la)
+    sw = paths.start_weight[paths.walk[lo:hi]][:, None]
+    return (np.sqrt(nt2[None, :] * sw / 2.0) * np.exp(0.5 * log_w - 1j * k[None, :] * length)).astype(np.complex64)
+
+
+#: Frequency bins between exact evaluations in the compiled sums (phase by rotation, extinction by its
+#: rate interpolated linearly in between: relative error ≲ 1e-2 where ℓ_ext(f) is steep).
+ANCHOR = 8
+
+if nb is not None:
+
+    @_jit
+    def _ray_sums(dist, below, amp, bounds, s0, s1, k0, dk, h, g0, out):  # pragma: no cover
+        """out[s, f, u] += Σ_{p ∈ segment s} amp[p, f] g0 e^{−ik_f d_pu − b_pu h_f}/(4π d_pu), s0 ≤ s < s1 (3-D
+        legs, `StraightRays`; k_f = k0 + f dk, h_f = 1/(2ℓ_ext(f)))."""
+        n_u = dist.shape[1]
+        n_f = amp.shape[1]
+        for s in range(s0, s1):
+            for p in range(bounds[s], bounds[s + 1]):
+                for u in range(n_u):
+                    d = dist[p, u]
+                    b = below[p, u]
+                    zr = np.float32(0.0)
+                    zi = np.float32(0.0)
+                    sr = np.float32(1.0)
+                    si = np.float32(0.0)
+                    for f in range(n_f):
+                        if f % ANCHOR == 0:
+                            mag = g0 / (4 * np.pi * d) * np.exp(-b * h[f])
+                            ph = -(k0 + dk * f) * d
+                            zr = np.float32(mag * np.cos(ph))
+                            zi = np.float32(mag * np.sin(ph))
+                            f1 = min(f + ANCHOR, n_f - 1)
+                            rate = np.exp(-b * (h[f1] - h[f]) / max(f1 - f, 1))
+                            sr = np.float32(rate * np.cos(-dk * d))
+                            si = np.float32(rate * np.sin(-dk * d))
+                        else:
+                            zr, zi = zr * sr - zi * si, zr * si + zi * sr
+                        a = amp[p, f]
+                        out[s, f, u] += complex(a.real * zr - a.imag * zi, a.real * zi + a.imag * zr)
+
+    @_jit
+    def _plane_sums(pts, half, amp, bounds, s0, s1, k0, dk, h, sx, sy, c, soft, zs, g0, out):  # pragma: no cover
+        """out[s, f, θ] += Σ_{p ∈ segment s} amp[p, f] g0 beam_θ(r_p) e^{−ik_f(a·ρ + c z) − h_f (z − z_s)/c}
+        (`PlaneWaveBeams`; half = the beam's half-width per point)."""
+        n_i = sx.size
+        n_f = amp.shape[1]
+        for s in range(s0, s1):
+            for p in range(bounds[s], bounds[s + 1]):
+                x, y, z = pts[p, 0], pts[p, 1], pts[p, 2]
+                hw = half[p]
+                for i in range(n_i):
+                    tx, ty = sx[i] / c[i], sy[i] / c[i]
+                    beam = 1.0
+                    for off in (abs(x - z * tx), abs(y - z * ty)):
+                        t = min(max((off - (hw - soft * hw)) / (2 * soft * hw), 0.0), 1.0)
+                        beam *= 0.5 + 0.5 * np.cos(np.pi * t)
+                    if beam == 0.0:
+                        continue
+                    path = sx[i] * x + sy[i] * y + c[i] * z
+                    depth = max(z - zs, 0.0) / c[i]
+                    zr = np.float32(0.0)
+                    zi = np.float32(0.0)
+                    sr = np.float32(1.0)
+                    si = np.float32(0.0)
+                    for f in range(n_f):
+                        if f % ANCHOR == 0:
+                            mag = g0 * beam * np.exp(-depth * h[f])
+                            ph = -(k0 + dk * f) * path
+                            zr = np.float32(mag * np.cos(ph))
+                            zi = np.float32(mag * np.sin(ph))
+                            f1 = min(f + ANCHOR, n_f - 1)
+                            rate = np.exp(-depth * (h[f1] - h[f]) / max(f1 - f, 1))
+                            sr = np.float32(rate * np.cos(-dk * path))
+                            si = np.float32(rate * np.sin(-dk * path))
+                        else:
+                            zr, zi = zr * sr - zi * si, zr * si + zi * sr
+                        a = amp[p, f]
+                        out[s, f, i] += complex(a.real * zr - a.imag * zi, a.real * zi + a.imag * zr)
+
+
+def _segment_sums(kind: str, args: tuple, n_seg: int, n_f: int, n_out: int, threads: int) -> np.ndarray:
+    """Run `_ray_sums` or `_plane_sums` over n_seg segments on `threads` threads: (n_seg, N_f, n_out)."""
+    out = np.zeros((n_seg, n_f, n_out), dtype=np.complex64)
+    fn = _ray_sums if kind == "rays" else _plane_sums
+    parts = max(1, min(n_seg, 4 * threads))
+
+    def task(slot: int, t: int) -> tuple:
+        s0, s1 = split(n_seg, parts, t)
+        return (*args[:4], s0, s1, *args[4:], out)
+
+    pool(threads, parts, fn, task)
+    return out
+
+
+def _uniform(freqs: np.ndarray) -> bool:
+    d = np.diff(freqs)
+    return freqs.size > 1 and bool(np.allclose(d, d[0], rtol=1e-6, atol=0))
+
+
+#: Walks per block of `path_spectra` (bounds its per-block tables, walks × N_f × N_u complex64).
+WALK_BLOCK = 400
+
+
+def path_spectra(
+    paths: Paths,
+    freqs: np.ndarray,
+    c0: float,
+    ls: np.ndarray,
+    rays: StraightRays,
+    transmits: Synthesised | PlaneWaveBeams,
+    la: float = np.inf,
+    first_order: bool = False,
+    threads: int | None = None,
+) -> np.ndarray:
+    """K(f, u, θ) (N_f, N_u, N_θ) complex64: the paths' field (module doc) at each frequency, ℓ_s(f) = `ls`
+    (N_f,), received along `rays` from the transmits `transmits`. With `first_order`, the walks' starts as
+    single scatterers instead (weight n|t|²/(N_w π₁), no reversed partner): the first order in the same
+    normalisation (a check). 3-D on a uniform frequency grid runs compiled loops (numba); otherwise numpy."""
+    f = np.asarray(freqs, dtype=np.float64)
+    ls = np.broadcast_to(np.asarray(ls, dtype=np.float64), f.shape)
+    k = 2 * np.pi * f / c0
+    lext = 1.0 / (1.0 / ls + 1.0 / la)
+    dim = paths.dim
+    nt2 = 4 * np.pi / ls if dim == 3 else 4 * k / ls  # n|t|² (module doc)
+    n_u = rays.receivers.shape[0]
+    n_i = transmits.sines.shape[0]
+    out = np.zeros((f.size, n_u, n_i), dtype=np.complex64)
+    compiled = nb is not None and dim == 3 and _uniform(f)
+    if isinstance(transmits, PlaneWaveBeams) and not compiled:
+        raise ValueError("transmits: PlaneWaveBeams needs 3-D paths on a uniform frequency grid (and numba)")
+    q = [transmits.weights(float(kk), rays.receivers, dim) for kk in k] if isinstance(transmits, Synthesised) else None
+    threads = threads or default_threads()
+    for b0 in range(0, paths.n_walks, WALK_BLOCK):
+        b1 = min(b0 + WALK_BLOCK, paths.n_walks)
+        lo, hi = (int(x) for x in np.searchsorted(paths.walk, [b0, b1]))
+        sw = np.sqrt(nt2[None, :] * paths.start_weight[b0:b1, None]).astype(np.complex64)  # (n_w, N_f)
+        if compiled:
+            e_s, i_s, s_out, s_in = _block_compiled(
+                paths, b0, b1, lo, hi, k, lext, ls, la, nt2, rays, transmits, threads
+            )
+        else:
+            e_s = np.stack([rays.values(k[m], lext[m], paths.start[b0:b1]) for m in range(f.size)], axis=1)
+            amp = _amplitudes(paths, lo, hi, b0, k, ls, la, nt2)
+            s_out = np.zeros((b1 - b0, f.size, n_u), dtype=np.complex64)
+            if hi > lo:
+                wk = paths.walk[lo:hi] - b0
+                first = np.flatnonzero(np.r_[True, wk[1:] != wk[:-1]])
+                for m in range(f.size):
+                    e_e = rays.values(k[m], lext[m], paths.end[lo:hi]) * amp[:, m, None]
+                    s_out[wk[first], m] = np.add.reduceat(e_e, first, axis=0)
+            i_s = s_in = None
+        for m in range(f.size):
+            if q is not None:
+                i_m = e_s[:, m] @ q[m]
+                s_in_m = s_out[:, m] @ q[m]
+            else:
+                assert i_s is not None and s_in is not None
+                i_m, s_in_m = i_s[:, m], s_in[:, m]
+            if first_order:
+                out[m] += (e_s[:, m] * sw[:, m, None]).T @ i_m
+            else:
+                out[m] += s_out[:, m].T @ i_m + e_s[:, m].T @ s_in_m
+    return out
+
+
+def _block_compiled(
+    paths: Paths,
+    b0: int,
+    b1: int,
+    lo: int,
+    hi: int,
+    k: np.ndarray,
+    lext: np.ndarray,
+    ls: np.ndarray,
+    la: float,
+    nt2: np.ndarray,
+    rays: StraightRays,
+    transmits: Synthesised | PlaneWaveBeams,
+    threads: int,
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray | None]:
+    """One block of walks by the compiled sums: E_s, I_s (None for synthesised transmits), S_out, S_in, each
+    (walks, N_f, ·) complex64 (`path_spectra`)."""
+    n_f = k.size
+    k0, dk = np.float64(k[0]), np.float64(k[1] - k[0])
+    h = (0.5 / lext).astype(np.float64)
+    n_w = b1 - b0
+    starts = paths.start[b0:b1]
+    own = np.arange(n_w + 1, dtype=np.int64)
+    ones = np.ones((n_w, n_f), dtype=np.complex64)
+    amp = _amplitudes(paths, lo, hi, b0, k, ls, la, nt2)
+    bounds = np.searchsorted(paths.walk[lo:hi], np.arange(b0, b1 + 1)).astype(np.int64)
+    n_u = rays.receivers.shape[0]
+    g0 = np.float64(rays.factor)
+    d_s, b_s = rays.geometry(starts)
+    e_s = _segment_sums("rays", (d_s, b_s, ones, own, k0, dk, h, g0), n_w, n_f, n_u, threads)
+    d_e, b_e = rays.geometry(paths.end[lo:hi])
+    s_out = _segment_sums("rays", (d_e, b_e, amp, bounds, k0, dk, h, g0), n_w, n_f, n_u, threads)
+    if isinstance(transmits, Synthesised):
+        return e_s, None, s_out, None
+    s = np.asarray(transmits.sines, dtype=np.float64)
+    c = np.sqrt(1.0 - (s**2).sum(axis=1))
+    ap = transmits.aperture
+
+    def half(pts: np.ndarray) -> np.ndarray:
+        return 0.5 * ap + transmits.wavelength * pts[:, 2] / (2 * ap)
+
+    tail = (k0, dk, h, s[:, 0].copy(), s[:, 1].copy(), c, 0.15, transmits.z_surface, np.float64(transmits.factor))
+    ends = np.ascontiguousarray(paths.end[lo:hi])
+    n_i = s.shape[0]
+    i_s = _segment_sums("plane", (starts, half(starts), ones, own, *tail), n_w, n_f, n_i, threads)
+    s_in = _segment_sums("plane", (ends, half(ends), amp, bounds, *tail), n_w, n_f, n_i, threads)
+    return e_s, i_s, s_out, s_in
