@@ -71,9 +71,10 @@ def path_realisations(
     return np.stack(multi), np.stack(first)
 
 
-def headline(quick: bool, n_real: int, n_walks: int, frame: int = 0) -> None:
+def headline(quick: bool, n_real: int, n_walks: int, layer_kw: dict[str, Any], reuse: bool = False) -> None:
     """The sinking-sphere rig: the paths' orders ≥ 2 against the model's Gaussian field, on its own medium
-    (ℓ_s(f), ℓ_a, the interface), by depth, and what that does to the spheres' confocal contrast."""
+    (ℓ_s(f), ℓ_a, the interface), by depth, and what that does to the spheres' confocal contrast. `layer_kw`
+    changes the model's layer (e.g. focal_return=True); with `reuse`, the paths saved by an earlier run."""
     import fpcore.simulate as sim
 
     sc = sim.scenario("sinking-sphere", quick=quick, n_frames=1)
@@ -91,7 +92,12 @@ def headline(quick: bool, n_real: int, n_walks: int, frame: int = 0) -> None:
     lext_c = float(layer.l_ext_at(2.2e6))
     v_p = []
     t0 = time.perf_counter()
-    for r in range(n_real):
+    saved = flr.OUT / f"paths_headline_{'quick' if quick else 'full'}.npz"
+    if reuse and saved.exists():
+        with np.load(saved) as z:
+            v_p = list(z["paths"][:n_real])
+        print(f"  paths: {len(v_p)} realisations from {saved}")
+    for r in range(len(v_p), n_real):
         p = draw_paths(
             np.random.default_rng(3000 + r),
             3,
@@ -105,38 +111,45 @@ def headline(quick: bool, n_real: int, n_walks: int, frame: int = 0) -> None:
         )
         v_p.append(path_spectra(p, freqs, sc.c0, ls_f, rays, tx, la=layer.la))
         print(f"  paths {r + 1}/{n_real}: {p.n_walks} walks, {p.n_paths} path ends, {time.perf_counter() - t0:.0f} s")
-    bg = sc.without_targets()._background()
-    assert bg is not None
-    v_g, v_1 = [], []
-    for r in range(n_real):
-        fork = bg.fork(np.random.default_rng(4000 + r))
-        mult, single = fork.next_orders()
-        v_g.append(mult)
-        v_1.append(single)
-    parts = {"paths": np.stack(v_p), "model": np.stack(v_g), "speckle": np.stack(v_1)}
-    flr.OUT.mkdir(parents=True, exist_ok=True)
-    np.savez(flr.OUT / f"paths_headline_{'quick' if quick else 'full'}.npz", freqs=freqs, **parts)
+    parts = {"paths": np.stack(v_p)}
+    if not (reuse and saved.exists()):
+        flr.OUT.mkdir(parents=True, exist_ok=True)
+        np.savez(saved, freqs=freqs, paths=parts["paths"])
+    models = {"model": sc}
+    if layer_kw:
+        models["model+"] = sim.scenario("sinking-sphere", quick=quick, n_frames=1, **layer_kw)
+    for name, scen in models.items():  # the same seeds: the same beads and Gaussian field in both
+        bg = scen.without_targets()._background()
+        assert bg is not None
+        orders = [bg.fork(np.random.default_rng(4000 + r)).next_orders() for r in range(n_real)]
+        parts[name] = np.stack([m for m, _ in orders])
+        parts[name + " first"] = np.stack([f for _, f in orders])
     depths = layer.z_surface + np.arange(1, 9) * layer.ls
     conf = {
         name: bm.confocal_profile(v, freqs, el, sines, sc.c0, 3, depths, 5e-3, n_lateral=7, band=sc.pulse).mean(axis=0)
         for name, v in parts.items()
     }
-    print(f"\nsinking-sphere ({'quick' if quick else 'full'}): confocal background by depth (patch ±5 mm)")
-    print("  depth   paths/model(orders≥2)  speckle/model  (speckle+paths)/(speckle+model) = C_I(model)/C_I(paths)")
+    # the fogs: the beads' speckle (the default model's first order) plus the paths; each model's own whole
+    fogs = {"paths": conf["model first"] + conf["paths"]}
+    fogs.update({n: conf[n] + conf[n + " first"] for n in models})
+    print(f"\nsinking-sphere ({'quick' if quick else 'full'}): confocal background by depth (patch ±5 mm), dB")
+    print("  depth  GF/paths (orders ≥ 2)  beads/paths  " + "  ".join(f"fog {n}/paths" for n in models))
     for j, z in enumerate(depths - layer.z_surface):
-        fog_m, fog_p = conf["speckle"][j] + conf["model"][j], conf["speckle"][j] + conf["paths"][j]
         print(
-            f"  {z / layer.ls:3.0f} ℓ_s  {db(conf['paths'][j] / conf['model'][j]):+6.1f} dB"
-            f"  {db(conf['speckle'][j] / conf['model'][j]):+6.1f} dB  {db(fog_p / fog_m):+6.1f} dB"
+            f"  {z / layer.ls:3.0f} ℓ_s  {db(conf['model'][j] / conf['paths'][j]):+6.1f}"
+            f"  {db(conf['model first'][j] / conf['paths'][j]):+6.1f}  "
+            + "  ".join(f"{db(fogs[n][j] / fogs['paths'][j]):+6.1f}" for n in models)
         )
+    parts["speckle"] = parts["model first"]
     contrast_slopes(sc, parts)
-    t, e_p = bm.time_envelope(parts["paths"], freqs, sc.pulse)
-    _, e_m = bm.time_envelope(parts["model"], freqs, sc.pulse)
+    # The fogs' time envelopes (a changed model's beads are drawn on its own grid: only its whole fog compares)
+    t, e_p = bm.time_envelope(parts["paths"] + parts["model first"], freqs, sc.pulse)
+    env = {n: bm.time_envelope(parts[n] + parts[n + " first"], freqs, sc.pulse)[1] for n in models}
     t_on = 2 * layer.z_surface / sc.c0
-    print("  time envelope of the orders ≥ 2, paths/model:")
+    print("  time envelope of the fog (the beads' speckle and the orders ≥ 2), model/paths (dB):")
     for tt in (1, 2, 5, 10, 20, 30, 40, 50):
         i = int(np.argmin(np.abs(t - t_on - tt * 1e-6)))
-        print(f"    +{tt:2d} µs: {db(e_p[i] / e_m[i]):+5.1f} dB")
+        print(f"    +{tt:2d} µs: " + "  ".join(f"{n} {db(e[i] / e_p[i]):+5.1f}" for n, e in env.items()))
 
 
 def contrast_slopes(sc: Any, parts: dict[str, np.ndarray]) -> None:
@@ -152,10 +165,10 @@ def contrast_slopes(sc: Any, parts: dict[str, np.ndarray]) -> None:
     ls_c = float(layer.ls_at(band.centre))
     depths = np.arange(1, 6) * ls_c
     spec = band.spectrum(freqs)
-    fogs = {
-        "model (speckle + Gaussian field)": parts["speckle"] + parts["model"],
-        "paths (speckle + transport paths)": parts["speckle"] + parts["paths"],
-    }
+    fogs = {"paths (the beads' speckle + the paths)": parts["speckle"] + parts["paths"]}
+    for name in ("model", "model+"):
+        if name in parts:
+            fogs[f"{name} (its own fog)"] = parts[name + " first"] + parts[name]
     for name, fog in fogs.items():
         i_t, water, m = vs._point_target_and_fog(
             layer, sc.probe, sc.sequence.sines, freqs, sc.c0, spec, s_out, list(fog), depths, 3
@@ -186,9 +199,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--model-realisations", type=int, default=8)
     ap.add_argument("--scenario", action="store_true", help="the sinking-sphere rig instead of a Foldy–Lax one")
     ap.add_argument("--full", action="store_true", help="with --scenario: the full 32×32 array")
+    ap.add_argument("--layer", action="append", default=[], help="with --scenario: the model layer's KEY=VALUE")
+    ap.add_argument("--reuse", action="store_true", help="with --scenario: the paths saved by an earlier run")
     args = ap.parse_args(argv)
     if args.scenario:
-        headline(not args.full, args.realisations, args.walks)
+        headline(not args.full, args.realisations, args.walks, vb.parse_layer(args.layer), args.reuse)
         return 0
     if not args.reference.exists():
         print(f"--reference: expected a Foldy–Lax file (bench/foldy_lax_reference.py), got {args.reference}")
@@ -197,7 +212,14 @@ def main(argv: list[str] | None = None) -> int:
     freqs, sines = data["freqs"], vb.transmit_sines(s.dim)
     v_fl = flr.plane_waves(data["K"], freqs, s.elements(), sines, s.c0, s.pitch, s.dim)
     v_fl1 = flr.plane_waves(flr.single_scattering(s, data), freqs, s.elements(), sines, s.c0, s.pitch, s.dim)
-    v_p, v_p1 = path_realisations(s, data, sines, args.realisations, args.walks)
+    saved = flr.OUT / f"paths_{args.reference.stem}.npz"
+    if args.reuse and saved.exists():
+        with np.load(saved) as z:
+            v_p, v_p1 = z["paths"], z["paths1"]
+        print(f"  paths: {v_p.shape[0]} realisations from {saved}")
+    else:
+        v_p, v_p1 = path_realisations(s, data, sines, args.realisations, args.walks)
+        np.savez(saved, paths=v_p, paths1=v_p1)
     expo = -float(np.polyfit(np.log(freqs / s.f_c), np.log(data["ls"]), 1)[0])
     layer_kw: dict[str, Any] = dict(
         envelope="diffusion",
@@ -211,6 +233,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     v_m, v_m1 = vb.model_orders(s, sines, args.model_realisations, layer_kw)
     parts = {"FL": v_fl - v_fl1, "paths": v_p, "model": v_m - v_m1, "FL1": v_fl1, "paths1": v_p1, "model1": v_m1}
+    overrides = vb.parse_layer(args.layer)
+    if overrides:  # the same seeds draw the same beads: the changed model's orders ≥ 2 are V − the default's first
+        v_x, _ = vb.model_orders(s, sines, args.model_realisations, {**layer_kw, **overrides})
+        parts["model+"] = v_x - v_m1
+        print(f"  model+: the default layer with {overrides}")
     prof = vb.focused_profiles(s, parts, sines, freqs)
     print(f"\n{s.dim}-D: focused matrix ⟨|R(x − Δx/2, x + Δx/2)|²⟩, dB re Foldy–Lax's orders ≥ 2 at Δx = 0")
     print("Δx (λ):        " + " ".join(f"{x:6.1f}" for x in vb.FOCUSED_SEPARATIONS))
@@ -221,13 +248,16 @@ def main(argv: list[str] | None = None) -> int:
     half = vb.contrast_half_width(s)
     depths = data["depths"]
     args_c = (freqs, s.elements(), sines, s.c0, s.dim, depths, half)
-    conf = {n: bm.confocal_profile(parts[n], *args_c, band=s.band).mean(axis=0) for n in ("FL", "paths", "model")}
+    multi = [n for n in ("FL", "paths", "model", "model+") if n in parts]
+    conf = {n: bm.confocal_profile(parts[n], *args_c, band=s.band).mean(axis=0) for n in multi}
     print("\nconfocal background of the orders ≥ 2 (dB re Foldy–Lax) by depth below the surface:")
     for j, z in enumerate(depths - s.z_surface):
         zl = z / s.ls_c
         if 0.4 <= zl <= 5.1:
-            rel = {n: float(db(conf[n][j] / conf["FL"][j])) for n in ("paths", "model")}
-            print(f"  {zl:4.1f} ℓ_s: paths {rel['paths']:+5.1f}  model {rel['model']:+5.1f}")
+            print(
+                f"  {zl:4.1f} ℓ_s: "
+                + "  ".join(f"{n} {float(db(conf[n][j] / conf['FL'][j])):+5.1f}" for n in multi[1:])
+            )
     t, e_fl = bm.time_envelope(v_fl - v_fl1, freqs, s.band)
     _, e_p = bm.time_envelope(v_p, freqs, s.band)
     _, e_m = bm.time_envelope(v_m - v_m1, freqs, s.band)

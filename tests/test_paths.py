@@ -140,3 +140,128 @@ def test_bad_arguments_name_the_field() -> None:
         P.draw_paths(rng, 3, 1e-3, 10, 1e-2, 0.0, 1e-3, 2e-3, thickness=1e-3)
     with pytest.raises(ValueError, match="n_walks"):
         P.draw_paths(rng, 3, 1e-3, 0, 1e-2, 0.0, 1e-3, 1e-3)
+
+
+def test_focal_overlap_counts_a_point_twice_and_separated_ends_not() -> None:
+    a_t, a_r = np.array([0.7e-3, 0.7e-3]), np.full((4, 2), 0.9e-3)
+    d = np.array([[0.0, 0.0], [0.3e-3, 0.0], [1e-3, 1e-3], [6e-3, 0.0]])
+    w = P.focal_overlap(d, a_t, a_r)
+    assert w[0] == pytest.approx(2.0)
+    assert np.all(np.diff(w) < 0) and w[-1] < 1e-10
+
+
+def test_defocus_lowers_the_focal_overlap() -> None:
+    """Eq. F2: ends off the focal plane by Δz see wider, weaker foci (Gaussian beams, z_R = k a²): W is 2 at Δz = 0
+    and falls monotonically with Δz, as 1/Δz² in 3-D far out of focus (one factor ∝ 1/Δz per lateral axis)."""
+    k = 2 * np.pi / 0.68e-3
+    a_t, a_r = np.array([0.7e-3, 0.7e-3]), np.full((4, 2), 0.9e-3)
+    d = np.zeros((4, 2))
+    dz = np.array([0.0, 2e-3, 5e-3, 20e-3])
+    w = P.focal_overlap(d, a_t, a_r, dz, dz, k)
+    assert w[0] == pytest.approx(2.0)
+    assert np.all(np.diff(w) < 0)
+    far = P.focal_overlap(d[:2], a_t, a_r[:2], np.array([40e-3, 80e-3]), np.array([40e-3, 80e-3]), k)
+    assert far[0] / far[1] == pytest.approx(4.0, rel=0.05)
+
+
+def _one_path(delta_x: float) -> P.Paths:
+    return P.Paths(
+        dim=3,
+        start=np.array([[0.0, 0.0, 6e-3]]),
+        walk=np.array([0]),
+        end=np.array([[delta_x, 0.0, 7e-3]]),
+        order=np.array([2], dtype=np.int32),
+        length=np.array([3e-3]),
+        ls_ref=1.8e-3,
+        start_weight=np.array([2e-9]),
+        start_area=1e-6,
+    )
+
+
+def test_focal_return_of_one_path_is_twice_its_intensity_at_its_apparent_depth() -> None:
+    """Eq. F1: a path whose ends coincide laterally scatters like a point at d = (d₁ + d_n + L)/2 with twice its
+    intensity |A|² = n|t|² sw w e^{−(d₁ + d_n)/ℓ_ext}, per unit area and depth; ends far apart, not at all."""
+    depths = np.arange(0, 40) * 0.25e-3
+    ls, la = 1.8e-3, 8e-3
+    # foci wide enough (a_t ≈ 7 mm, a_r ≈ 3 mm) that the ends' 1–2 mm of defocus do not matter (< 0.1 %)
+    ages = np.arange(0, 40) * 0.5e-3
+    args = (
+        depths,
+        ages,
+        np.array([2.2e6]),
+        np.array([ls]),
+        la,
+        1500.0,
+        np.array([0.05] * 2),
+        np.array([1e-3] * 2),
+        5e-3,
+    )
+    v = P.focal_return(_one_path(0.0), *args)[0][0]
+    d1, dn, length = 1e-3, 2e-3, 3e-3
+    j = int(np.argmax(v))
+    assert depths[j] == pytest.approx((d1 + dn + length) / 2)
+    lext = 1 / (1 / ls + 1 / la)
+    expected = 2 * (4 * np.pi / ls) * (2e-9 / 1e-6) * np.exp(-length / la - (d1 + dn) / lext) / 0.25e-3
+    assert v[j] == pytest.approx(expected, rel=2e-3)
+    assert v.sum() == pytest.approx(v[j])
+    # F3: its energy moved from the Gaussian field at its length d₁ + L + d_n (all of it: W = 2), none apart
+    kept = P.focal_return(_one_path(0.0), *args)[1][0]
+    assert kept[int(np.argmin(np.abs(ages - (d1 + dn + length))))] == pytest.approx(0.0, abs=2e-3)
+    assert np.sum(kept < 1) == 1
+    far_var, far_kept = P.focal_return(_one_path(80e-3), *args)
+    assert far_var.max() < 1e-8 * expected and np.all(far_kept > 1 - 1e-8)
+
+
+def test_the_focal_return_option_is_refused_without_the_beads_grid_or_a_focus() -> None:
+    from fpcore.acquisition import PlaneWaveSequence, Probe
+    from fpcore.simulate.diffuse import DiffuseBackground
+    from fpcore.simulate.medium import ScatteringLayer
+    from fpcore.simulate.waves import Band, TimeWindow
+
+    with pytest.raises(ValueError, match="focal_return"):
+        ScatteringLayer(z_surface=10e-3, ls=1.8e-3, focal_return=True)  # single_scattering="envelope"
+    probe = Probe.linear(16, 0.34e-3, 2.2e6, 0.8e6)
+    lay = ScatteringLayer(z_surface=10e-3, ls=1.8e-3, la=8e-3, single_scattering="field", focal_return=True)
+    win = TimeWindow.covering(10.4e6, 16e-6, 30e-6, guard=10e-6)
+    one = PlaneWaveSequence.uniform_sines(1, 0.0)
+    with pytest.raises(ValueError, match="focal_return: expected at least 2 transmits"):
+        DiffuseBackground(
+            lay, probe.positions, one.sines, win, Band(1.8e6, 2.6e6), 1500.0, 2, 2.7e-3, np.random.default_rng(0)
+        )
+
+
+def test_the_focal_return_draws_its_variance_and_takes_its_energy_from_the_gaussian_field() -> None:
+    """docs/design.md §6.6: with focal_return the beads' grid carries a second, non-negative variance profile down to
+    the record's end (a table of the rig: equal for two backgrounds), the Gaussian field's envelopes are lowered by
+    the kept share κ ∈ [0, 1] (F3), and the frames' two orders come out finite."""
+    from fpcore.acquisition import PlaneWaveSequence, Probe
+    from fpcore.simulate.diffuse import DiffuseBackground
+    from fpcore.simulate.medium import ScatteringLayer
+    from fpcore.simulate.waves import Band, TimeWindow
+
+    probe = Probe.linear(32, 0.34e-3, 2.2e6, 0.8e6)
+    seq = PlaneWaveSequence.uniform_sines(7, 0.2)
+    win = TimeWindow.covering(10.4e6, 14e-6, 30e-6, guard=10e-6)
+    band = Band(1.8e6, 2.6e6)
+
+    def build(fr: bool) -> DiffuseBackground:
+        lay = ScatteringLayer(
+            z_surface=10e-3, ls=1.8e-3, la=8e-3, envelope="diffusion", single_scattering="field", focal_return=fr
+        )
+        return DiffuseBackground(
+            lay, probe.positions, seq.sines, win, band, 1500.0, 2, 0.5 * probe.aperture[0], np.random.default_rng(5)
+        )
+
+    plain, with_fr, again = build(False), build(True), build(True)
+    ss = with_fr.single
+    assert ss is not None and ss._fr_var is not None and with_fr._fr_kept is not None
+    assert np.all(ss._fr_var >= 0) and ss._fr_var.max() > 0
+    assert ss.depths[-1] >= 0.5 * 1500.0 * 30e-6 - 10e-3 - ss.hz  # the record's end (30 µs)
+    np.testing.assert_array_equal(ss._fr_var, again.single._fr_var)  # type: ignore[union-attr]
+    kept = with_fr._fr_kept[1]
+    assert np.all((kept >= 0) & (kept <= 1)) and kept.min() < 0.99
+    e_plain = sum(float(np.sum(e**2)) for e in plain.envelopes)
+    e_fr = sum(float(np.sum(e**2)) for e in with_fr.envelopes)
+    assert e_fr < e_plain
+    multiple, single = with_fr.next_orders()
+    assert single is not None and np.all(np.isfinite(multiple)) and np.all(np.isfinite(single))

@@ -56,6 +56,7 @@ import scipy.fft as sfft
 from ..acquisition import element_grid_axes
 from ..geometry import cosines
 from .memory import MemoryKernel, block_energy_gain, block_kernel, effective_spread, grid_kernel, lattice_steps
+from .paths import draw_paths, focal_return
 from .reciprocity import ReciprocalBlock
 from .single_scattering import SingleScatteringField
 from .waves import Band, TimeWindow
@@ -322,6 +323,33 @@ class DiffuseBackground:
         n_sub = 1 if layer.ls_exponent == 0.0 else min(N_SUB_BANDS, n_f, max(n_sub, 2))
         self.centres = np.linspace(self.freqs[0], self.freqs[-1], n_sub) if n_sub > 1 else np.array([band.centre])
         self.blend = _triangles(self.freqs, self.centres)  # (n_sub, N_f)
+        # The beads' single scattering (its generator is the background generator's first draw) and the focal
+        # return of the orders ≥ 2 on its grid, whose energy the Gaussian field's envelopes then leave out.
+        self.single: SingleScatteringField | None = None
+        self._fr_kept: tuple[np.ndarray, np.ndarray] | None = None
+        if layer.single_scattering == "field":
+            ss_rng = _beads_stream(rng)
+            t_end = window.t0 + window.period
+            # Deep enough that the echo at the band's lower −6 dB edge has fallen by e^{−12} in intensity; with the
+            # focal return, to the record's end (its apparent depths reach it: docs/design.md §6.6).
+            depth_max = max(min(0.5 * c0 * t_end - layer.z_surface, 6.0 * float(layer.l_ext_at(band.f_min))), 1e-3)
+            if layer.focal_return:
+                depth_max = max(depth_max, 0.5 * c0 * (window.t0 + window.duration) - layer.z_surface)
+            self.single = SingleScatteringField(
+                layer,
+                s,
+                self.freqs,
+                self.blend,
+                self.centres,
+                c0,
+                dim,
+                (float(span[0]), float(span[1]) if dim == 3 else 0.0),
+                depth_max,
+                ss_rng,
+            )
+            if layer.focal_return:
+                var, g1, self._fr_kept = focal_return_tables(layer, self.single, el, s, self.centres, c0, dim, window)
+                self.single.add_focal_return(var, g1)
         self.envelopes, self.g1 = self._envelopes(self.s_out, s, cone=layer.cbs)
         self.envelope = self.envelopes[len(self.envelopes) // 2]  # the band-centre one (tests, diagnostics)
         # Reciprocity and coherent backscattering between the transmits' beams (`reciprocity`): the main
@@ -358,24 +386,6 @@ class DiffuseBackground:
                 self._memory_block = block_kernel(self.block.m_inputs, spacings, steps, beta)
                 g = block_energy_gain(el, spacings, self.block.m_inputs, steps, beta, np.sqrt(kc2))
                 self._block_env = [e / np.sqrt(g).astype(np.float32) for e in self._block_env]
-        self.single: SingleScatteringField | None = None
-        if layer.single_scattering == "field":
-            ss_rng = _beads_stream(rng)
-            t_end = window.t0 + window.period
-            # Deep enough that the echo at the band's lower −6 dB edge has fallen by e^{−12} in intensity.
-            depth_max = max(min(0.5 * c0 * t_end - layer.z_surface, 6.0 * float(layer.l_ext_at(band.f_min))), 1e-3)
-            self.single = SingleScatteringField(
-                layer,
-                s,
-                self.freqs,
-                self.blend,
-                self.centres,
-                c0,
-                dim,
-                (float(span[0]), float(span[1]) if dim == 3 else 0.0),
-                depth_max,
-                ss_rng,
-            )
         self.state: np.ndarray | None = None
         self.block_state: np.ndarray | None = None
         self._frozen: tuple[np.ndarray, np.ndarray | None] | None = None
@@ -423,7 +433,7 @@ class DiffuseBackground:
         envelopes, which do not depend on the draws."""
         self.rng = rng
         if self.single is not None:
-            self.single.rng, self.single.state = _beads_stream(rng), None
+            self.single.rng, self.single.state, self.single.fr_state = _beads_stream(rng), None, None
         self.state = self.block_state = self._frozen = None
 
     def _envelopes(
@@ -446,7 +456,7 @@ class DiffuseBackground:
         orders_from = 2 if layer.single_scattering == "field" else 1
         tab = np.linspace(0.0, max(float(tau.max()), 1e-9), 4096)
         sep2 = np.sum((s_out[:, None, :] + sines[at_i]) ** 2, axis=2)  # |s_o + s_θ|², (N_o, N_θ)
-        envelopes = []
+        envelopes: list[np.ndarray] = []
         for fc in self.centres:
             lay = layer.at_frequency(float(fc))
             # ⟨M²⟩ per unit pulse energy: unit-density white noise shaped by this envelope and filtered by
@@ -455,6 +465,9 @@ class DiffuseBackground:
                 rate = lay.intensity(tab, c0, self._aperture_radius, dim, pulse_energy=1.0, orders_from=orders_from)
             else:
                 rate = lay.exitance(tab, c0, self._aperture_radius, dim, orders_from=orders_from)
+            if self._fr_kept is not None:  # the focal return's share of the energy left out (F3)
+                s_grid, kept = self._fr_kept
+                rate = rate * np.interp(self._v * tab, s_grid, kept[len(envelopes)])
             env = np.interp(tau, tab, np.sqrt(np.maximum(rate, 0.0)), left=0.0).astype(np.float32)
             if geo is not None:  # each direction's share of the halo, the weights' normalisation divided out
                 env *= np.sqrt(geo.share(tau, lay.ls, self._cell, layer.cbs) * np.float32(self._norm2))
@@ -574,6 +587,76 @@ class DiffuseBackground:
         if self.g1 is None:
             self._frozen, self.state, self.block_state = (multiple, single), None, None
         return multiple, single
+
+
+#: Walks drawn for the focal return's depth profile (`focal_return_tables`), from a fixed seed: a table of the
+#: rig, not a draw of the frame (its Monte-Carlo scatter is a few % per depth cell; docs/design.md §6.6).
+FOCAL_WALKS = 40000
+FOCAL_SEED = 20261205
+#: Path-length bins of the Gaussian field's kept energy share (`focal_return_tables`).
+FOCAL_LENGTH_BINS = 400
+
+
+def focal_return_tables(
+    layer: ScatteringLayer,
+    single: SingleScatteringField,
+    elements: np.ndarray,
+    sines: np.ndarray,
+    centres: np.ndarray,
+    c0: float,
+    dim: int,
+    window: TimeWindow,
+) -> tuple[np.ndarray, np.ndarray | None, tuple[np.ndarray, np.ndarray]]:
+    """The focal return on the beads' grid (docs/design.md §6.6): its variance (n_sub, nz), g₁ per depth (None if
+    frozen; a path of length 2d, DWS) and the share of the energy the Gaussian field keeps by path length (s grid,
+    (n_sub, N_s)). Walks in the layer (`paths.draw_paths`, first scatterings weighted by the incident extinction)
+    summed by `paths.focal_return` with the rig's foci: the transmits' span of sines and the array's aperture per
+    lateral axis (a focus needs ≥ 2 transmits along each)."""
+    axes = 2 if dim == 3 else 1
+    el, si = np.asarray(elements, dtype=np.float64), np.asarray(sines, dtype=np.float64)
+    span, aperture = [], []
+    for d in range(axes):
+        u = np.unique(np.round(si[:, d], 9))
+        if u.size < 2:
+            raise ValueError(f"focal_return: expected at least 2 transmits along axis {'xy'[d]}, got {u.size}")
+        span.append(float(np.ptp(u)) * u.size / (u.size - 1))  # N_θ Δs
+        x = np.unique(np.round(el[:, d], 9))
+        aperture.append(float(np.ptp(x)) * x.size / max(x.size - 1, 1))  # N_u × pitch
+    depth_end = float(single.depths[-1])
+    v = c0 if layer.energy_velocity is None else layer.energy_velocity
+    s_end = max(v * (window.t0 + window.duration) - 2 * layer.z_surface * v / c0, 2 * depth_end)
+    f_c = float(np.mean(centres))
+    lext_c = float(layer.l_ext_at(f_c))
+    walks = draw_paths(
+        np.random.default_rng(FOCAL_SEED),
+        dim,
+        float(layer.ls_at(f_c)),
+        FOCAL_WALKS,
+        l_max=s_end,
+        z_top=layer.z_surface,
+        start_half_width=0.5 * layer.width if np.isfinite(layer.width) else 5e-3,
+        start_depth=min(depth_end, layer.thickness),
+        thickness=layer.thickness,
+        half_width=0.5 * layer.width,
+        start_decay=lext_c,
+    )
+    s_grid = np.linspace(0.0, s_end, FOCAL_LENGTH_BINS)
+    var, kept = focal_return(
+        walks,
+        single.depths,
+        s_grid,
+        centres,
+        layer.ls_at(centres),
+        layer.la,
+        c0,
+        np.array(span),
+        np.array(aperture),
+        layer.z_surface,
+    )
+    g1 = None
+    if layer.frame_displacement > 0:
+        g1 = layer.correlation_per_frame(2 * single.depths / v, c0, f_c).astype(np.float32)
+    return var, g1, (s_grid, kept)
 
 
 def _beads_stream(rng: np.random.Generator) -> np.random.Generator:

@@ -91,7 +91,9 @@ class ScatteringLayer:
     envelope (`reflectance_density`); width: its lateral extent (m; |x|, |y| ≤ width/2 about the array's
     axis; inf: unbounded), whose sides let the diffuse halo out (`side_losses`); angular: "uniform" (every
     output direction carries the same envelope, timed at the array's centre) or "halo" (each direction sees
-    the halo where its ray through the array meets the surface, at that ray's delay: `diffuse` module doc).
+    the halo where its ray through the array meets the surface, at that ray's delay: `diffuse` module doc);
+    focal_return: the orders ≥ 2 whose ends the rig sees as one point, drawn as a second reflectivity on the beads'
+    grid at their apparent depth (`paths.focal_return_variance`, docs/design.md §6.6; needs single_scattering="field").
     """
 
     z_surface: float
@@ -114,6 +116,7 @@ class ScatteringLayer:
     width: float = np.inf
     angular: str = "uniform"
     memory: bool = False
+    focal_return: bool = False
 
     def __post_init__(self) -> None:
         if self.angular not in ("uniform", "halo"):
@@ -121,6 +124,10 @@ class ScatteringLayer:
         if self.memory and not self.cbs:
             raise ValueError(
                 "memory: expected cbs=True as well (the memory effect needs the output grid aligned with the transmits)"
+            )
+        if self.focal_return and self.single_scattering != "field":
+            raise ValueError(
+                "focal_return: expected single_scattering='field' as well (it is drawn on the beads' grid)"
             )
         if self.single_scattering not in ("envelope", "field"):
             raise ValueError(f"single_scattering: expected 'envelope' or 'field', got {self.single_scattering!r}")

@@ -43,7 +43,17 @@ import numpy as np
 from ..kernel import default_threads
 from ..kernel_presum_loops import _jit, nb, pool, split
 
-__all__ = ["Paths", "PlaneWaveBeams", "StraightRays", "Synthesised", "draw_paths", "far_green", "path_spectra"]
+__all__ = [
+    "Paths",
+    "PlaneWaveBeams",
+    "StraightRays",
+    "Synthesised",
+    "draw_paths",
+    "far_green",
+    "focal_overlap",
+    "focal_return",
+    "path_spectra",
+]
 
 
 @dataclass(frozen=True)
@@ -52,7 +62,7 @@ class Paths:
     path end — `walk` (P,) the walk it belongs to (non-decreasing), `end` (P, 3), `order` (P,) n ≥ 2,
     `length` (P,) the internal length L between the first and the last scattering (m). Steps were drawn
     with ℓ_s = `ls_ref`; `start_weight` (N_w,) is 1/(N_w π₁(r₁)), the measure each walk stands for (m³; m² in
-    2-D)."""
+    2-D), over first scatterings spread laterally over `start_area` (m²; m in 2-D)."""
 
     dim: int
     start: np.ndarray
@@ -62,6 +72,7 @@ class Paths:
     length: np.ndarray
     ls_ref: float
     start_weight: np.ndarray
+    start_area: float
 
     @property
     def n_walks(self) -> int:
@@ -148,7 +159,126 @@ def draw_paths(
         np.concatenate(ev_l)[srt],
         float(ls_ref),
         1.0 / (n_walks * density),
+        float(area),
     )
+
+
+#: Amplitude width of a diffraction-limited focus, a = A_W λ/NA for an aperture (or span of sines) NA: the
+#: Gaussian e^{−x²/(2a²)} whose |·|² has the FWHM 0.886 λ/NA of the uniform aperture's sinc².
+A_W = 0.886 / (2 * np.sqrt(np.log(2)))
+
+
+def focal_overlap(
+    delta: np.ndarray,
+    a_t: np.ndarray,
+    a_r: np.ndarray,
+    dz_first: np.ndarray | None = None,
+    dz_last: np.ndarray | None = None,
+    k: float | None = None,
+) -> np.ndarray:
+    """W (N,) of paths whose ends lie Δ⊥ (N, n_axes) apart laterally, relative to half a point scatterer's confocal
+    intensity (docs/design.md §6.6, eq. F2): the transmit focus (amplitude width a_t per axis, (n_axes,)) on one end
+    and the receive focus (a_r, (N, n_axes)) on the other, ∫|P_T(ρ₁ − ρ)|²|P_R(ρ_n − ρ)|² dρ ∝ e^{−Δ²/(a_t² + a_r²)}
+    per axis, and the same with the ends swapped (the reversed path), plus their cross term
+    e^{−Δ²(1/a_t² + 1/a_r²)/4}: 2 where the ends coincide in the focal plane, → 0 apart. With the ends' defocus
+    `dz_first`, `dz_last` (N,) (the apparent depth less each end's depth) and k, each focus widens as a Gaussian
+    beam, ã² = a² + (Δz/(k a))², and its peak falls so that ∫|P|²dρ is kept: each term × √((a_t² + a_r²)/(ã_t² + ã_r²))
+    per axis (the cross term at the mean defocus, times each beam's overlap with itself across the ends' defocus
+    difference δ, |1 + iδ/(2z_R)|^{−1/2} per axis, z_R = k a²)."""
+    d2 = np.asarray(delta, dtype=np.float64) ** 2
+    at2 = np.asarray(a_t, dtype=np.float64)[None, :] ** 2
+    ar2 = np.asarray(a_r, dtype=np.float64) ** 2
+    if dz_first is None or dz_last is None or k is None:
+        zero = np.zeros(d2.shape[0])
+        dz_first, dz_last, k = zero, zero, 1.0
+
+    def widened(a2: np.ndarray, dz: np.ndarray) -> np.ndarray:
+        return a2 + (np.asarray(dz, dtype=np.float64)[:, None] / k) ** 2 / a2
+
+    def term(t2: np.ndarray, r2: np.ndarray, cross: bool) -> np.ndarray:
+        peak = np.sqrt((at2 + ar2) / (t2 + r2))
+        shape = d2 * (1.0 / t2 + 1.0 / r2) / 4.0 if cross else d2 / (t2 + r2)
+        return np.prod(peak * np.exp(-shape), axis=1)
+
+    forward = term(widened(at2, dz_first), widened(ar2, dz_last), False)
+    reverse = term(widened(at2, dz_last), widened(ar2, dz_first), False)
+    mean = 0.5 * (np.asarray(dz_first) + np.asarray(dz_last))
+    # The cross term pairs each focus at one end's defocus with itself at the other's: a Gaussian beam overlaps its
+    # own propagation by Δ as |1 + iΔ/(2z_R)|^{−1/2} per axis, z_R = k a².
+    gap = (np.asarray(dz_first, dtype=np.float64) - np.asarray(dz_last, dtype=np.float64))[:, None] / k
+    coherence = np.prod(((1 + (gap / (2 * at2)) ** 2) * (1 + (gap / (2 * ar2)) ** 2)) ** -0.25, axis=1)
+    return 0.5 * (forward + reverse) + coherence * term(widened(at2, mean), widened(ar2, mean), True)
+
+
+def focal_return(
+    paths: Paths,
+    depths: np.ndarray,
+    lengths: np.ndarray,
+    freqs: np.ndarray,
+    ls: np.ndarray,
+    la: float,
+    c0: float,
+    transmit_span: np.ndarray,
+    aperture: np.ndarray,
+    z_surface: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The focal return of the orders ≥ 2 (docs/design.md §6.6): the paths' ends that the rig sees as one point.
+
+    Returns ν (N_f, N_z), the reflectivity variance per unit volume (that of the beads' single scattering is
+    n|t|² e^{−2d/ℓ_ext}) with which they scatter from the apparent depth d = (d₁ + d_n + L)/2 below the surface
+    (`depths`, uniform spacing h),
+
+        ν(d) = (1/(A h)) Σ_{d_app ∈ [d − h/2, d + h/2)} n|t|² sw w_f(n, L) e^{−(d₁ + d_n)/ℓ_ext(f)} W      (F1)
+
+    — each path's intensity |A|² (module doc) with both legs' extinction at normal incidence, times
+    `focal_overlap` W (2 where the ends coincide: the path and its reversed partner add in phase), per unit area A
+    of first scatterings — and the share of the ladder's energy that the Gaussian field keeps at each path length
+    s = d₁ + L + d_n (`lengths`, uniform), κ(s) = 1 − Σ E W/2 / Σ E over the paths of that length (N_f, N_s),
+    E = sw w_f e^{−(d₁ + d_n)/ℓ_ext}: a point-like path's energy moves to the focal return (its reversed partner's
+    doubles it there, as in coherent backscattering), a path whose ends lie apart keeps it in the field (F3).
+    The rig's foci: the transmits' amplitude width A_W λ/S per lateral axis over the span of sines S =
+    `transmit_span` (N_θ Δs per axis), the receive's A_W λ/(2 NA) over the aperture D = `aperture` at the range
+    R = z_surface + d, NA = (D/2)/√(R² + D²/4) (A_W λ R/D at small NA); λ at each frequency. ℓ_s(f) = `ls`,
+    absorption ℓ_a = `la`."""
+    dep = np.asarray(depths, dtype=np.float64)
+    h = float(dep[1] - dep[0]) if dep.size > 1 else 1.0
+    s_grid = np.asarray(lengths, dtype=np.float64)
+    hs = float(s_grid[1] - s_grid[0]) if s_grid.size > 1 else 1.0
+    f = np.asarray(freqs, dtype=np.float64)
+    ls = np.broadcast_to(np.asarray(ls, dtype=np.float64), f.shape)
+    var, kept = np.zeros((f.size, dep.size)), np.ones((f.size, s_grid.size))
+    if paths.n_paths == 0:
+        return var, kept
+    axes = 2 if paths.dim == 3 else 1
+    w = paths.walk
+    d1 = paths.start[w, 2] - z_surface
+    dn = paths.end[:, 2] - z_surface
+    d_app = 0.5 * (d1 + dn + paths.length)
+    cell = np.floor((d_app - dep[0]) / h + 0.5).astype(np.int64)
+    in_grid = (cell >= 0) & (cell < dep.size)
+    age = np.floor((d1 + dn + paths.length - s_grid[0]) / hs + 0.5).astype(np.int64)
+    in_ages = (age >= 0) & (age < s_grid.size)
+    delta = paths.end[:, :axes] - paths.start[w, :axes]
+    per_area = paths.start_weight[w] / paths.start_area
+    span = np.broadcast_to(np.asarray(transmit_span, dtype=np.float64), (axes,))
+    ap = np.broadcast_to(np.asarray(aperture, dtype=np.float64), (axes,))
+    for m in range(f.size):
+        lam, lf = c0 / f[m], float(ls[m])
+        k = 2 * np.pi / lam
+        lext = 1.0 / (1.0 / lf + 1.0 / la)
+        nt2 = 4 * np.pi / lf if paths.dim == 3 else 4 * k / lf
+        log_w = (paths.order - 1) * np.log(paths.ls_ref / lf) - paths.length * (
+            1.0 / lf - 1.0 / paths.ls_ref + 1.0 / la
+        )
+        energy = per_area * np.exp(log_w - (d1 + dn) / lext)
+        r = (z_surface + d_app)[:, None]
+        a_r = A_W * lam * np.sqrt(r**2 + (ap[None, :] / 2) ** 2) / ap[None, :]  # A_W λ/(2 NA), NA = sin of the edge ray
+        ov = focal_overlap(delta, A_W * lam / span, a_r, d_app - d1, d_app - dn, k)
+        var[m] = np.bincount(cell[in_grid], weights=(nt2 * energy * ov)[in_grid], minlength=dep.size) / h
+        total = np.bincount(age[in_ages], weights=energy[in_ages], minlength=s_grid.size)
+        moved = np.bincount(age[in_ages], weights=(energy * ov / 2)[in_ages], minlength=s_grid.size)
+        kept[m] = np.where(total > 0, np.clip(1.0 - moved / np.maximum(total, 1e-300), 0.0, 1.0), 1.0)
+    return var, kept
 
 
 def far_green(k: float, d: np.ndarray, dim: int) -> np.ndarray:

@@ -126,6 +126,11 @@ class SingleScatteringField:
         g = layer.correlation_single(c0, float(np.mean(self.freqs))) if layer.frame_displacement > 0 else None
         self.g1 = g
         self.state: np.ndarray | None = None
+        # The focal return of the orders ≥ 2 (`add_focal_return`): its own reflectivity on this grid, summed with the
+        # beads' before the NUFFT (one transform for both), with its own depth profile and frame-to-frame g₁.
+        self._fr_var: np.ndarray | None = None
+        self._fr_g1: np.ndarray | None = None
+        self.fr_state: np.ndarray | None = None
         self._plans: list[tuple] | None = None  # per sub-band, built at the first spectrum
         self._beams: np.ndarray | None = None
         self._plan_lock: threading.Lock | None = None  # made with the plans, shared with them (`prepare`)
@@ -148,18 +153,39 @@ class SingleScatteringField:
         out.imag = self.rng.standard_normal(shape, dtype=np.float32) * sig
         return out
 
+    def add_focal_return(self, variance: np.ndarray, g1: np.ndarray | None) -> None:
+        """A second reflectivity on this grid: the focal return of the orders ≥ 2 (`paths.focal_return_variance`),
+        variance (n_sub, nz) per unit volume at each sub-band centre and depth (extinction included), and its g₁
+        between frames per depth (nz,), None when frozen. Set before the first spectrum."""
+        v = np.asarray(variance, dtype=np.float64)
+        if v.shape != (self.centres.size, self.nz):
+            raise ValueError(f"variance: expected shape {(self.centres.size, self.nz)}, got {v.shape}")
+        if self._plans is not None:
+            raise ValueError("variance: expected before the first spectrum (the sub-bands' profiles are built then)")
+        self._fr_var = v
+        self._fr_g1 = None if g1 is None else np.asarray(g1, dtype=np.float32)
+
     def advance(self) -> None:
-        """Draw the first grid, or move the beads by one frame (AR(1) with g₁; frozen when g₁ is None)."""
+        """Draw the first grid, or move the beads by one frame (AR(1) with g₁; frozen when g₁ is None); the focal
+        return's grid likewise with its own g₁ per depth."""
         if self.state is None:
             self.state = self._white()
         elif self.g1 is not None:
             g = np.float32(self.g1)
             self.state *= g
             self.state += self._white() * np.float32(np.sqrt(max(0.0, 1.0 - self.g1**2)))
+        if self._fr_var is not None:
+            if self.fr_state is None:
+                self.fr_state = self._white()
+            elif self._fr_g1 is not None:
+                self.fr_state *= self._fr_g1
+                self.fr_state += self._white() * np.sqrt(np.maximum(0.0, 1.0 - self._fr_g1**2))
 
-    def _sub_band(self, idx: np.ndarray, fc: float) -> tuple[np.ndarray, list[finufft.Plan], np.ndarray]:
-        """What a frame does not change, per sub-band: the depth profile, the NUFFT points and the factor
-        applied after it (module doc)."""
+    def _sub_band(
+        self, idx: np.ndarray, fc: float
+    ) -> tuple[np.ndarray, np.ndarray | None, list[finufft.Plan], np.ndarray]:
+        """What a frame does not change, per sub-band: the depth profile (and the focal return's, or None), the
+        NUFFT points and the factor applied after it (module doc)."""
         lay = self.layer
         ls, lext = float(lay.ls_at(fc)), float(lay.l_ext_at(fc))
         kc = 2 * np.pi * fc / self.c0
@@ -167,6 +193,10 @@ class SingleScatteringField:
         # The depth profile: extinction of both legs, the scattering strength, and e^{−i k_z0 d} (the axial
         # carrier taken out of the NUFFT's spatial frequencies below).
         depth_w = np.exp(-self.depths / lext - 1j * self._kz0 * self.depths) * np.sqrt(strength * self._cell)
+        fr_w = None
+        if self._fr_var is not None:  # the focal return's variance already holds its legs' extinction
+            j = int(np.argmin(np.abs(self.centres - fc)))
+            fr_w = (np.exp(-1j * self._kz0 * self.depths) * np.sqrt(self._fr_var[j] * self._cell)).astype(np.complex64)
         k = 2 * np.pi * self.freqs[idx] / self.c0  # (n_f,)
         kx = k[None, None, :] * self._qx[:, :, None]  # (N_o, N_θ, n_f)
         kz = k[None, None, :] * self._qz[:, :, None]
@@ -191,7 +221,7 @@ class SingleScatteringField:
         else:
             weyl = (-1j * self._ds2 / (4 * np.pi * self._co[:, None]) * np.ones_like(k)[None, :])[:, None, :]
         post = (ph * weyl * self._t_r * self.taper[:, None, None]).astype(np.complex64)
-        return depth_w.astype(np.complex64), plans, post
+        return depth_w.astype(np.complex64), fr_w, plans, post
 
     def prepare(self) -> None:
         """Build what no frame changes (per sub-band depth profiles and NUFFT plans, the transmits' beams),
@@ -203,8 +233,9 @@ class SingleScatteringField:
             for wts, fc in zip(self.blend, self.centres, strict=True):
                 idx = np.flatnonzero(wts > 0)
                 if idx.size:
-                    depth_w, plans, post = self._sub_band(idx, fc)
-                    self._plans.append((idx, depth_w, plans, post * wts[idx].astype(np.float32)[None, None, :]))
+                    depth_w, fr_w, plans, post = self._sub_band(idx, fc)
+                    post = post * wts[idx].astype(np.float32)[None, None, :]
+                    self._plans.append((idx, depth_w, fr_w, plans, post))
         if self._beams is None:
             self._beams = np.stack([self.beam(i) for i in range(self.n_i)])
 
@@ -216,8 +247,11 @@ class SingleScatteringField:
         self.prepare()
         assert self._plans is not None and self._beams is not None and self._plan_lock is not None
         out = np.zeros((self.n_o, self.n_i, self.freqs.size), dtype=np.complex64)
-        for idx, depth_w, plans, post in self._plans:
+        for idx, depth_w, fr_w, plans, post in self._plans:
             base = self.state * depth_w[None, None, :]
+            if fr_w is not None:
+                assert self.fr_state is not None
+                base += self.fr_state * fr_w[None, None, :]
             for i, plan in enumerate(plans):
                 grid = base * self._beams[i]
                 with self._plan_lock:
