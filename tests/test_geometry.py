@@ -50,3 +50,24 @@ def test_mirror_direction_is_the_tilted_unit_vector() -> None:
     assert np.linalg.norm(t) == pytest.approx(1.0)
     assert np.allclose(t, [0.0, np.cos(np.deg2rad(30.0)), 0.5], atol=1e-15)
     assert np.array_equal(mirror_direction(0.0), [1.0, 0.0, 0.0])
+
+
+def test_mean_secants_are_the_fans_averages() -> None:
+    """⟨1/cos φ⟩ over a line aperture D at range R has the closed form (a√(1 + a²) + asinh a)/(2a), a = D/(2R); over
+    a square it is the mean of √(1 + (ρx² + ρy²)/R²) (a dense Monte Carlo); both → 1 far away. ⟨1/c⟩ over a span of
+    sines S per axis is 1 + S²/24 per axis to leading order, and 1 for a single direction."""
+    from fpcore.geometry import secant_over_aperture, secant_over_sines
+
+    d, r = 10e-3, np.array([5e-3, 25e-3, 1.0])
+    a = d / (2 * r)
+    np.testing.assert_allclose(
+        secant_over_aperture([d], r), (a * np.sqrt(1 + a**2) + np.arcsinh(a)) / (2 * a), rtol=1e-9
+    )
+    rho = np.random.default_rng(0).uniform(-d / 2, d / 2, (400_000, 2))
+    mc = np.mean(np.sqrt(1 + (rho**2).sum(1) / 8e-3**2))
+    assert secant_over_aperture([d, d], 8e-3) == pytest.approx(mc, rel=1e-3)
+    assert secant_over_aperture([d, d], 10.0) == pytest.approx(1.0, abs=1e-6)
+    assert secant_over_sines([0.0, 0.0]) == pytest.approx(1.0, abs=1e-12)
+    assert secant_over_sines([0.1, 0.1]) == pytest.approx(1 + 2 * 0.01 / 24, rel=2e-6)  # + O(S⁴): 1.5e-6
+    s = np.random.default_rng(1).uniform(-0.4, 0.4, (400_000, 2))
+    assert secant_over_sines([0.8, 0.8]) == pytest.approx(np.mean(1 / np.sqrt(1 - (s**2).sum(1))), rel=1e-3)

@@ -201,7 +201,8 @@ def test_focal_return_of_one_path_is_twice_its_intensity_at_its_apparent_depth()
     j = int(np.argmax(v))
     assert depths[j] == pytest.approx((d1 + dn + length) / 2)
     lext = 1 / (1 / ls + 1 / la)
-    expected = 2 * (4 * np.pi / ls) * (2e-9 / 1e-6) * np.exp(-length / la - (d1 + dn) / lext) / 0.25e-3
+    q_in, q_out = 1 + 2 * 0.05**2 / 24, 1 + 2 * 1e-3**2 / 24 / (5e-3 + dn) ** 2  # the legs' mean obliquity
+    expected = 2 * (4 * np.pi / ls) * (2e-9 / 1e-6) * np.exp(-length / la - (q_in * d1 + q_out * dn) / lext) / 0.25e-3
     assert v[j] == pytest.approx(expected, rel=2e-3)
     assert v.sum() == pytest.approx(v[j])
     # F3: its energy moved from the Gaussian field at its length d₁ + L + d_n (all of it: W = 2), none apart

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from fpcore.acquisition import PlaneWaveSequence, Probe
-from fpcore.geometry import cosines
+from fpcore.geometry import cosines, secant_over_aperture
 from fpcore.simulate import scenario
 from fpcore.simulate.diffuse import DiffuseBackground, aligned_spacing, project_plane_waves, reciprocal_pairs
 from fpcore.simulate.medium import ScatteringLayer
@@ -85,8 +85,9 @@ def test_ballistic_echo_is_filtered_by_l_ext_of_each_frequency() -> None:
 
 @pytest.mark.parametrize("dim", [2, 3])
 def test_single_scattering_nufft_equals_the_direct_sum(dim: int) -> None:
-    """A(o, θ, f) = W_b (1 − R²) Σ_j blend_j(f) Σ_m η_m w_θ(x_m) e^{−ik[(a − b)·x + (c_a + c_b) z]} e^{−d/ℓ_ext(f_j)}
-    (single_scattering module doc): sub-bands blended, each transmit's beam steered."""
+    """A(o, θ, f) = W_b (1 − R²) Σ_j blend_j(f) Σ_m η_m w_θ(x_m) e^{−ik[(a − b)·x + (c_a + c_b) z]}
+    × e^{−d (1/c_a + q(z))/(2ℓ_ext(f_j))} (single_scattering module doc): sub-bands blended, each transmit's beam
+    steered, each transmit's leg extinguished along its own slant and the receive's over the aperture's fan."""
     lay = _layer(single_scattering="field")
     so = np.stack([np.linspace(-0.4, 0.4, 7), np.zeros(7) if dim == 2 else np.linspace(-0.3, 0.3, 7)], 1)
     si = np.array([[-0.2, 0.0], [0.0, 0.0], [0.1, 0.05 if dim == 3 else 0.0]])
@@ -107,11 +108,12 @@ def test_single_scattering_nufft_equals_the_direct_sum(dim: int) -> None:
     for wts, fc in zip(blend, centres, strict=True):
         ls, le, kc = float(lay.ls_at(fc)), float(lay.l_ext_at(fc)), 2 * np.pi * fc / C0
         strength = 4 * np.pi / ls if dim == 3 else 4 * kc / ls
-        eta = ss.state * np.exp(-d / le) * np.sqrt(strength * ss._cell)
+        q = secant_over_aperture(ap[: dim - 1], lay.z_surface + d)
+        eta = ss.state * np.exp(-d * q / (2 * le)) * np.sqrt(strength * ss._cell)
         for fi in np.flatnonzero(wts > 0):
             k = 2 * np.pi * f[fi] / C0
             for t in range(si.shape[0]):
-                lit = eta * ss.beam(t)
+                lit = eta * ss.beam(t) * np.exp(-d / (2 * le * ci[t]))
                 for o in range(so.shape[0]):
                     w = -1j * k * 0.05**2 / (8 * np.pi**2 * co[o]) if dim == 3 else -1j * 0.05 / (4 * np.pi * co[o])
                     lateral = (si[t, 0] - so[o, 0]) * x + ((si[t, 1] - so[o, 1]) * y if dim == 3 else 0.0)
@@ -146,9 +148,12 @@ def test_single_scattering_grid_gives_a_scatterers_green_function_at_the_element
         ss.state[ix, iy, iz] = 1.0
         got = project_plane_waves(ss.spectrum(), f, C0, probe.positions, ss.s_out, axes, keep)
         r = np.array([[ss._xs[ix], ss._ys[iy] if dim == 3 else 0.0, lay.z_surface + ss.depths[iz]]])
-        t = ss._t_r * np.exp(-ss.depths[iz] / le) * np.sqrt(strength * ss._cell) * np.ones(f.size)
+        d = ss.depths[iz]
+        q = secant_over_aperture(ap[: dim - 1], lay.z_surface + d)
+        t = ss._t_r * np.exp(-d * q / (2 * le)) * np.sqrt(strength * ss._cell) * np.ones(f.size)
         ref = radiate_points(r, t[None, :].astype(np.complex64), probe.positions, si, f, C0, dim)
-        ref = ref * np.array([ss.beam(i)[ix, iy, iz] for i in range(si.shape[0])])[None, None, :]
+        lit = [ss.beam(i)[ix, iy, iz] * np.exp(-d / (2 * le * cosines(si)[i])) for i in range(si.shape[0])]
+        ref = ref * np.array(lit)[None, None, :]
         return float(np.linalg.norm(got - ref) / np.linalg.norm(ref))
 
     own = SingleScatteringField(

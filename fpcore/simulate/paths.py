@@ -40,6 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry import secant_over_aperture, secant_over_sines
 from ..kernel import default_threads
 from ..kernel_presum_loops import _jit, nb, pool, split
 
@@ -228,14 +229,15 @@ def focal_return(
     n|t|² e^{−2d/ℓ_ext}) with which they scatter from the apparent depth d = (d₁ + d_n + L)/2 below the surface
     (`depths`, uniform spacing h),
 
-        ν(d) = (1/(A h)) Σ_{d_app ∈ [d − h/2, d + h/2)} n|t|² sw w_f(n, L) e^{−(d₁ + d_n)/ℓ_ext(f)} W      (F1)
+        ν(d) = (1/(A h)) Σ_{d_app ∈ [d − h/2, d + h/2)} n|t|² sw w_f(n, L) e^{−(q_in d₁ + q_out d_n)/ℓ_ext(f)} W  (F1)
 
-    — each path's intensity |A|² (module doc) with both legs' extinction at normal incidence, times
+    — each path's intensity |A|² (module doc) with both legs' extinction (d₁ and d_n times the legs' mean obliquity
+    1/c: over the span of sines for the transmits, over the aperture seen from the end for the receive), times
     `focal_overlap` W (2 where the ends coincide: the path and its reversed partner add in phase), per unit area A
     of first scatterings — and the share of the ladder's energy that the Gaussian field keeps at each path length
     s = d₁ + L + d_n (`lengths`, uniform), κ(s) = 1 − Σ E W/2 / Σ E over the paths of that length (N_f, N_s),
-    E = sw w_f e^{−(d₁ + d_n)/ℓ_ext}: a point-like path's energy moves to the focal return (its reversed partner's
-    doubles it there, as in coherent backscattering), a path whose ends lie apart keeps it in the field (F3).
+    E = sw w_f e^{−(q_in d₁ + q_out d_n)/ℓ_ext}: a point-like path's energy moves to the focal return (its reversed
+    partner's doubles it there, as in coherent backscattering), a path whose ends lie apart keeps it in the field (F3).
     The rig's foci: the transmits' amplitude width A_W λ/S per lateral axis over the span of sines S =
     `transmit_span` (N_θ Δs per axis), the receive's A_W λ/(2 NA) over the aperture D = `aperture` at the range
     R = z_surface + d, NA = (D/2)/√(R² + D²/4) (A_W λ R/D at small NA); λ at each frequency. ℓ_s(f) = `ls`,
@@ -262,6 +264,11 @@ def focal_return(
     per_area = paths.start_weight[w] / paths.start_area
     span = np.broadcast_to(np.asarray(transmit_span, dtype=np.float64), (axes,))
     ap = np.broadcast_to(np.asarray(aperture, dtype=np.float64), (axes,))
+    # The legs' obliquity (F1): the transmits' ⟨1/c_θ⟩ over the span of sines, the receive rays' ⟨1/cos⟩ from the end's
+    # range R over the aperture (uniform; tabulated in R, smooth).
+    q_in = secant_over_sines(span)
+    r_tab = np.linspace(z_surface, z_surface + max(float(dn.max(initial=0.0)), 1e-9), 257)
+    q_out = np.interp(z_surface + dn, r_tab, secant_over_aperture(ap, r_tab))
     for m in range(f.size):
         lam, lf = c0 / f[m], float(ls[m])
         k = 2 * np.pi / lam
@@ -270,7 +277,7 @@ def focal_return(
         log_w = (paths.order - 1) * np.log(paths.ls_ref / lf) - paths.length * (
             1.0 / lf - 1.0 / paths.ls_ref + 1.0 / la
         )
-        energy = per_area * np.exp(log_w - (d1 + dn) / lext)
+        energy = per_area * np.exp(log_w - (d1 * q_in + dn * q_out) / lext)
         r = (z_surface + d_app)[:, None]
         a_r = A_W * lam * np.sqrt(r**2 + (ap[None, :] / 2) ** 2) / ap[None, :]  # A_W λ/(2 NA), NA = sin of the edge ray
         ov = focal_overlap(delta, A_W * lam / span, a_r, d_app - d1, d_app - dn, k)

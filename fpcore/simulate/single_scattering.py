@@ -7,10 +7,12 @@ n σ_s = 1/ℓ_s(f) is a random reflectivity η(r) with ⟨η η*⟩ = n|t|² δ
 the coherent (extinguished) medium, transmit θ (sine a, cosine c_a) and an upgoing output plane wave o
 (sine b, cosine c_b; element phase e^{−ik b·u}) see
 
-    A(o, θ, f) = W_b(f) (1 − R²) Σ_m η_m e^{−ik[(a − b)·x_m + (c_a + c_b) z_m]} e^{−d_m/ℓ_ext(f)} w(x_m)
+  A(o, θ, f) = W_b(f) (1 − R²) Σ_m η_m e^{−ik[(a − b)·x_m + (c_a + c_b) z_m]} e^{−d_m (1/c_a + q(z_m))/(2ℓ_ext)} w(x_m)
 
-with d_m = z_m − z_s the depth below the surface, e^{−d/ℓ_ext(f)} the extinction of both legs at
-normal incidence (obliquity neglected: the legs' factors 1/c_a, 1/c_b ≤ 1.15 within ±0.5 of the axis),
+with d_m = z_m − z_s the depth below the surface and e^{−d(1/c_a + q)/(2ℓ_ext(f))} the extinction of both
+oblique legs: the transmit's, of length d/c_a, and the receive's, whose rays fan out over the array's aperture
+D: q(z) = ⟨1/cos φ⟩ over the aperture seen from the range z (`geometry.secant_over_aperture`; the plane-wave
+output basis cannot carry each output's own 1/c_b through the transform, and the array receives the fan);
 w(x − z tan θ) the lateral extent of the transmitted beam, steered with it (the aperture and its
 diffraction spread, a smooth edge)
 and W_b the plane-wave (Weyl) weight of the Green function on the output grid of spacing Δs:
@@ -34,7 +36,7 @@ from typing import TYPE_CHECKING
 import finufft
 import numpy as np
 
-from ..geometry import cosines
+from ..geometry import cosines, secant_over_aperture
 
 if TYPE_CHECKING:
     from .medium import ScatteringLayer
@@ -98,6 +100,7 @@ class SingleScatteringField:
         self.s_out = so
         self.n_o, self.n_i = so.shape[0], si.shape[0]
         co = cosines(so)
+        self._ci = ci
         # Spatial frequencies per (o, θ) in units of k: lateral a − b, axial c_a + c_b.
         self._qx = si[None, :, 0] - so[:, None, 0]
         self._qy = si[None, :, 1] - so[:, None, 1]
@@ -113,6 +116,8 @@ class SingleScatteringField:
         self.nz = max(4, int(np.ceil(depth_max / hz)) + 1)
         self.hz = hz
         self.depths = np.arange(self.nz) * hz
+        # The receive leg's mean secant over the array's fan of rays at each depth (module doc).
+        self._q_out = secant_over_aperture(aperture[: 2 if dim == 3 else 1], z_s + self.depths)
         self.nx = 2 * int(np.ceil(reach[0] / hx)) + 2
         self.ny = 2 * int(np.ceil(reach[1] / hx)) + 2 if dim == 3 else 1
         self.hx = hx
@@ -183,16 +188,19 @@ class SingleScatteringField:
 
     def _sub_band(
         self, idx: np.ndarray, fc: float
-    ) -> tuple[np.ndarray, np.ndarray | None, list[finufft.Plan], np.ndarray]:
-        """What a frame does not change, per sub-band: the depth profile (and the focal return's, or None), the
-        NUFFT points and the factor applied after it (module doc)."""
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, list[finufft.Plan], np.ndarray]:
+        """What a frame does not change, per sub-band: the depth profile, the transmits' extinction (N_θ, nz), the
+        focal return's depth profile (or None), the NUFFT points and the factor applied after it (module doc)."""
         lay = self.layer
         ls, lext = float(lay.ls_at(fc)), float(lay.l_ext_at(fc))
         kc = 2 * np.pi * fc / self.c0
         strength = (4 * np.pi / ls) if self.dim == 3 else (4 * kc / ls)  # n|t|² (module doc)
-        # The depth profile: extinction of both legs, the scattering strength, and e^{−i k_z0 d} (the axial
-        # carrier taken out of the NUFFT's spatial frequencies below).
-        depth_w = np.exp(-self.depths / lext - 1j * self._kz0 * self.depths) * np.sqrt(strength * self._cell)
+        # The depth profile: the receive leg's extinction over the aperture's fan of rays, the scattering strength,
+        # and e^{−i k_z0 d} (the axial carrier taken out of the NUFFT's spatial frequencies below); the transmit
+        # leg's extinction e^{−d/(2 c_θ ℓ_ext)} per transmit (module doc).
+        depth_w = np.exp(-self.depths * self._q_out / (2 * lext) - 1j * self._kz0 * self.depths)
+        depth_w *= np.sqrt(strength * self._cell)
+        tx_w = np.exp(-self.depths[None, :] / (2 * lext * self._ci[:, None])).astype(np.float32)  # (N_θ, nz)
         fr_w = None
         if self._fr_var is not None:  # the focal return's variance already holds its legs' extinction
             j = int(np.argmin(np.abs(self.centres - fc)))
@@ -221,7 +229,7 @@ class SingleScatteringField:
         else:
             weyl = (-1j * self._ds2 / (4 * np.pi * self._co[:, None]) * np.ones_like(k)[None, :])[:, None, :]
         post = (ph * weyl * self._t_r * self.taper[:, None, None]).astype(np.complex64)
-        return depth_w.astype(np.complex64), fr_w, plans, post
+        return depth_w.astype(np.complex64), tx_w, fr_w, plans, post
 
     def prepare(self) -> None:
         """Build what no frame changes (per sub-band depth profiles and NUFFT plans, the transmits' beams),
@@ -233,9 +241,9 @@ class SingleScatteringField:
             for wts, fc in zip(self.blend, self.centres, strict=True):
                 idx = np.flatnonzero(wts > 0)
                 if idx.size:
-                    depth_w, fr_w, plans, post = self._sub_band(idx, fc)
+                    depth_w, tx_w, fr_w, plans, post = self._sub_band(idx, fc)
                     post = post * wts[idx].astype(np.float32)[None, None, :]
-                    self._plans.append((idx, depth_w, fr_w, plans, post))
+                    self._plans.append((idx, depth_w, tx_w, fr_w, plans, post))
         if self._beams is None:
             self._beams = np.stack([self.beam(i) for i in range(self.n_i)])
 
@@ -247,13 +255,17 @@ class SingleScatteringField:
         self.prepare()
         assert self._plans is not None and self._beams is not None and self._plan_lock is not None
         out = np.zeros((self.n_o, self.n_i, self.freqs.size), dtype=np.complex64)
-        for idx, depth_w, fr_w, plans, post in self._plans:
+        for idx, depth_w, tx_w, fr_w, plans, post in self._plans:
             base = self.state * depth_w[None, None, :]
-            if fr_w is not None:
+            focal = None
+            if fr_w is not None:  # its variance holds its legs' extinction: no transmit factor (module doc)
                 assert self.fr_state is not None
-                base += self.fr_state * fr_w[None, None, :]
+                focal = self.fr_state * fr_w[None, None, :]
             for i, plan in enumerate(plans):
-                grid = base * self._beams[i]
+                grid = base * tx_w[i][None, None, :]
+                if focal is not None:
+                    grid += focal
+                grid *= self._beams[i]
                 with self._plan_lock:
                     vals = plan.execute(grid if self.dim == 3 else np.ascontiguousarray(grid[:, 0, :]))
                 out[:, i, idx] += vals.reshape(self.n_o, idx.size) * post[:, i]
