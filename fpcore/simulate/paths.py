@@ -43,6 +43,7 @@ import numpy as np
 from ..geometry import secant_over_aperture, secant_over_sines
 from ..kernel import default_threads
 from ..kernel_presum_loops import _jit, nb, pool, split
+from .single_scattering import beam_gain, beam_half_width
 
 __all__ = [
     "Paths",
@@ -344,7 +345,8 @@ class Synthesised:
 class PlaneWaveBeams:
     """Unit plane waves e^{−ik(a·ρ + c z)} (3-D) confined to a beam: the aperture (side `aperture`) plus its
     diffraction spread λ_c z/(2·aperture) (λ_c = `wavelength`), steered (centred on z tan θ), with cosine edges
-    over ±15 % of the half-width (`single_scattering`'s beam); times `factor` (the interface's one-way
+    over ±15 % of the half-width and the amplitude that conserves the beam's power as it spreads
+    (`single_scattering`'s beam: `beam_half_width`, `beam_gain`); times `factor` (the interface's one-way
     transmission) and the extinction e^{−(z − z_s)/(2 c_θ ℓ_ext)} of the oblique path below the surface."""
 
     sines: np.ndarray  # (N_θ, 2)
@@ -564,11 +566,14 @@ def _block_compiled(
     ap = transmits.aperture
 
     def half(pts: np.ndarray) -> np.ndarray:
-        return 0.5 * ap + transmits.wavelength * pts[:, 2] / (2 * ap)
+        return beam_half_width(ap, pts[:, 2], transmits.wavelength)
+
+    def gain(pts: np.ndarray) -> np.ndarray:  # both lateral axes' power-conserving amplitude, per point
+        return (beam_gain(ap, pts[:, 2], transmits.wavelength) ** 2).astype(np.float32)[:, None]
 
     tail = (k0, dk, h, s[:, 0].copy(), s[:, 1].copy(), c, 0.15, transmits.z_surface, np.float64(transmits.factor))
     ends = np.ascontiguousarray(paths.end[lo:hi])
     n_i = s.shape[0]
-    i_s = _segment_sums("plane", (starts, half(starts), ones, own, *tail), n_w, n_f, n_i, threads)
-    s_in = _segment_sums("plane", (ends, half(ends), amp, bounds, *tail), n_w, n_f, n_i, threads)
+    i_s = _segment_sums("plane", (starts, half(starts), ones * gain(starts), own, *tail), n_w, n_f, n_i, threads)
+    s_in = _segment_sums("plane", (ends, half(ends), amp * gain(ends), bounds, *tail), n_w, n_f, n_i, threads)
     return e_s, i_s, s_out, s_in
