@@ -26,7 +26,6 @@ def regress(s: flr.Setup, data: dict[str, np.ndarray], n_real: int) -> dict[str,
     """a (CLASSES, CLASSES) complex and the correlation with K per class pair, for legs 'normal' and 'slant'."""
     freqs, el = data["freqs"], s.elements()
     tbar = data["T"].mean(axis=0)
-    log_t = np.log(np.abs(tbar)) + 1j * np.unwrap(np.angle(tbar), axis=1)
     rho = np.hypot(el[:, 0], el[:, 1])
     edges = np.quantile(rho, np.linspace(0.0, 1.0, CLASSES + 1))
     onehot = np.eye(CLASSES)[np.clip(np.searchsorted(edges, rho, side="right") - 1, 0, CLASSES - 1)]
@@ -35,15 +34,15 @@ def regress(s: flr.Setup, data: dict[str, np.ndarray], n_real: int) -> dict[str,
     kk = np.zeros((CLASSES, CLASSES))
     for r, pts in enumerate(flr._redrawn(s, data, n_real)):
         d = flr._pairwise(el, pts, s.dim)
+        vertical = pts[None, :, 2] - el[:, None, 2]
         for m, f in enumerate(freqs):
             k = 2 * np.pi * f / s.c0
             t = complex(s.strength(np.array(k)))
             g = flr.green(k, d, s.dim)
-            lt = np.interp(pts[:, 2], data["depths"], log_t[m].real) + 1j * np.interp(
-                pts[:, 2], data["depths"], log_t[m].imag
-            )
+            # the same coherent leg with the slant ratio R/z set to 1: ⟨T⟩(z) per leg, the normal incidence
+            normal = g * flr._slant_legs(tbar[m], data["depths"], el, pts, vertical)
             slant = g * flr._slant_legs(tbar[m], data["depths"], el, pts, d)
-            k1 = {"normal": (g * (t * np.exp(2 * lt))[None, :]) @ g.T, "slant": (slant * t) @ slant.T}
+            k1 = {"normal": (normal * t) @ normal.T, "slant": (slant * t) @ slant.T}
             big = data["K"][r, m].astype(complex)
             for key, x in k1.items():
                 num[key] += onehot.T @ (np.conj(x) * big) @ onehot
