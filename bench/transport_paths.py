@@ -3,6 +3,7 @@ an independent check of what the statistical background gets right and wrong (do
 
     .venv/bin/python bench/transport_paths.py                                  # 2-D reference, 6 × 3000 walks
     .venv/bin/python bench/transport_paths.py --reference out/bench/fl_reference_3d_deep.npz --walks 6000
+    .venv/bin/python bench/transport_paths.py --reference out/bench/fl_reference_3d_deep.npz --walks 6000 --beams
 
 The paths are drawn in the reference's slab (same ℓ_s(f) per frequency, lossless), their legs to the
 elements through the coherent wave along each straight ray, the transmits synthesised from the elements as
@@ -10,7 +11,9 @@ the probe fires them (`foldy_lax_reference.plane_waves`' weights). Printed side 
 paths and the model (`validate_background.model_orders`, the default layer with --slab): the focused
 matrix's profile against the in–out separation of the orders ≥ 2 at 1–4 ℓ_s, the confocal background of the
 orders ≥ 2 by depth, and the four agreement figures of the issue (`validate_background.measure`) on the
-paths' field (their own first order plus the orders ≥ 2).
+paths' field (their own first order plus the orders ≥ 2). With --beams (3-D): the paths' first order lit by the
+transmits the array synthesises against the same lit by the speckle's model beam (`PlaneWaveBeams`, the simulator's
+`single_scattering` beam), confocal, by depth.
 """
 
 from __future__ import annotations
@@ -69,6 +72,32 @@ def path_realisations(
         first.append(path_spectra(p, data["freqs"], s.c0, data["ls"], rays, tx, first_order=True))
         print(f"  paths {r + 1}/{n_real}: {p.n_walks} walks, {p.n_paths} path ends, {time.perf_counter() - t0:.0f} s")
     return np.stack(multi), np.stack(first)
+
+
+def beam_check(s: flr.Setup, data: dict[str, np.ndarray], sines: np.ndarray, n_real: int, n_walks: int) -> None:
+    """The speckle's model beam against the synthesised transmits: the paths' first order lit by each (the same
+    walks, the same receive legs), its confocal intensity at 1–4 ℓ_s, model beam / synthesised in dB."""
+    freqs = data["freqs"]
+    rays = StraightRays(s.elements(), s.z_surface, s.dim)
+    beams = PlaneWaveBeams(sines, s.n_side * s.pitch, s.z_surface, s.c0 / s.f_c)
+    lit: dict[str, list[np.ndarray]] = {"synthesised": [], "model beam": []}
+    for r in range(n_real):
+        p = slab_paths(s, n_walks, np.random.default_rng(9000 + r))
+        for name, tx in (("synthesised", Synthesised(sines, s.pitch)), ("model beam", beams)):
+            lit[name].append(path_spectra(p, freqs, s.c0, data["ls"], rays, tx, first_order=True))
+        print(f"  first orders {r + 1}/{n_real}")
+    depths = s.z_surface + np.arange(1, 5) * s.ls_c
+    conf = {
+        n: bm.confocal_profile(
+            np.stack(v), freqs, s.elements(), sines, s.c0, s.dim, depths, vb.contrast_half_width(s), band=s.band
+        ).mean(axis=0)
+        for n, v in lit.items()
+    }
+    ratio = db(conf["model beam"] / conf["synthesised"])
+    print(
+        "the paths' first order lit by the model beam / by the synthesised transmits at 1 … 4 ℓ_s (dB): "
+        + " / ".join(f"{x:+.1f}" for x in ratio)
+    )
 
 
 def headline(quick: bool, n_real: int, n_walks: int, layer_kw: dict[str, Any], reuse: bool = False) -> None:
@@ -201,6 +230,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--full", action="store_true", help="with --scenario: the full 32×32 array")
     ap.add_argument("--layer", action="append", default=[], help="with --scenario: the model layer's KEY=VALUE")
     ap.add_argument("--reuse", action="store_true", help="with --scenario: the paths saved by an earlier run")
+    ap.add_argument("--beams", action="store_true", help="3-D reference only: the model beam against the synthesised")
     args = ap.parse_args(argv)
     if args.scenario:
         headline(not args.full, args.realisations, args.walks, vb.parse_layer(args.layer), args.reuse)
@@ -210,6 +240,12 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     s, data = flr.load(args.reference)
     freqs, sines = data["freqs"], vb.transmit_sines(s.dim)
+    if args.beams:
+        if s.dim != 3:
+            print(f"--beams: expected a 3-D reference (the model beam is 3-D), got a {s.dim}-D one")
+            return 2
+        beam_check(s, data, sines, args.realisations, args.walks)
+        return 0
     v_fl = flr.plane_waves(data["K"], freqs, s.elements(), sines, s.c0, s.pitch, s.dim)
     v_fl1 = flr.plane_waves(flr.single_scattering(s, data), freqs, s.elements(), sines, s.c0, s.pitch, s.dim)
     saved = flr.OUT / f"paths_{args.reference.stem}.npz"

@@ -444,21 +444,24 @@ def test_speckle_beam_carries_the_power_of_the_synthesised_plane_wave() -> None:
     transmit) sends a power ∫∫|p|² dx dy through each depth that stays ≈ D² as the beam spreads; the speckle's beam
     (`beam_half_width`, `beam_gain`) carries the same within 25 %, where a flat beam as wide as its spread carried
     (1 + λz/D²)² times it."""
+    from fpcore.simulate.paths import Synthesised
     from fpcore.simulate.single_scattering import _edge, beam_gain, beam_half_width
 
     lam = C0 / 2.2e6
     k, pitch, n = 2 * np.pi / lam, lam / 2, 12
     u = (np.arange(n) - (n - 1) / 2) * pitch
     ex, ey = (a.ravel() for a in np.meshgrid(u, u, indexing="ij"))
+    elements = np.stack([ex, ey, np.zeros_like(ex)], axis=1)
+    q = Synthesised(np.zeros((1, 2)), pitch).weights(k, elements, 3)[:, 0]  # the reference's transmit weights
     aperture = n * pitch
     for z in (5e-3, 10e-3, 20e-3):
         hw = float(beam_half_width(aperture, z, lam))
         g = np.arange(-(3 * hw + 2e-3), 3 * hw + 2e-3, lam / 5)
         x, y = np.meshgrid(g, g, indexing="ij")
         field = np.zeros(x.shape, complex)
-        for a, b in zip(ex, ey, strict=True):
+        for a, b, qv in zip(ex, ey, q, strict=True):
             r = np.sqrt((x - a) ** 2 + (y - b) ** 2 + z**2)
-            field += np.exp(-1j * k * r) / (4 * np.pi * r) * (2j * k * pitch**2)
+            field += np.exp(-1j * k * r) / (4 * np.pi * r) * qv
         exact = np.sum(np.abs(field) ** 2) * (g[1] - g[0]) ** 2
         profile = _edge(g, hw, 0.15 * hw)
         model = (np.sum((profile * beam_gain(aperture, z, lam)) ** 2) * (g[1] - g[0])) ** 2
