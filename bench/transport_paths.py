@@ -4,6 +4,7 @@ an independent check of what the statistical background gets right and wrong (do
     .venv/bin/python bench/transport_paths.py                                  # 2-D reference, 6 × 3000 walks
     .venv/bin/python bench/transport_paths.py --reference out/bench/fl_reference_3d_deep.npz --walks 6000
     .venv/bin/python bench/transport_paths.py --reference out/bench/fl_reference_3d_deep.npz --walks 6000 --beams
+    .venv/bin/python bench/transport_paths.py --reuse --focal-split --model-realisations 12   # the focal return, split
 
 The paths are drawn in the reference's slab (same ℓ_s(f) per frequency, lossless), their legs to the
 elements through the coherent wave along each straight ray, the transmits synthesised from the elements as
@@ -13,7 +14,8 @@ matrix's profile against the in–out separation of the orders ≥ 2 at 1–4 �
 orders ≥ 2 by depth, and the four agreement figures of the issue (`validate_background.measure`) on the
 paths' field (their own first order plus the orders ≥ 2). With --beams (3-D): the paths' first order lit by the
 transmits the array synthesises against the same lit by the speckle's model beam (`PlaneWaveBeams`, the simulator's
-`single_scattering` beam), confocal, by depth.
+`single_scattering` beam), confocal, by depth. With --focal-split: the model with the focal return split into the
+focal return alone and the Gaussian field it keeps, against Foldy–Lax, the paths and the default Gaussian field.
 """
 
 from __future__ import annotations
@@ -98,6 +100,86 @@ def beam_check(s: flr.Setup, data: dict[str, np.ndarray], sines: np.ndarray, n_r
         "the paths' first order lit by the model beam / by the synthesised transmits at 1 … 4 ℓ_s (dB): "
         + " / ".join(f"{x:+.1f}" for x in ratio)
     )
+
+
+def focal_split(
+    s: flr.Setup, data: dict[str, np.ndarray], sines: np.ndarray, parts: dict[str, np.ndarray], layer_kw: dict[str, Any]
+) -> None:
+    """Where the focal return's excess comes from (docs/design.md §6.6): the model with focal_return=True split into
+    the focal return alone (the beads' reflectivity zero, `SingleScatteringField.draw_beads`) and the Gaussian field it
+    keeps, against Foldy–Lax's orders ≥ 2, the paths and the default Gaussian field (`parts`: "FL", "paths", "model"),
+    the same seeds as the default model. Printed: the confocal background by depth and the focused matrix's profile
+    against the in–out separation, dB re Foldy–Lax, and the element-averaged envelopes."""
+    from fpcore.simulate.diffuse import DiffuseBackground
+    from fpcore.simulate.medium import ScatteringLayer
+
+    freqs = data["freqs"]
+    n_real = parts["model"].shape[0]
+    layer = ScatteringLayer(
+        z_surface=s.z_surface,
+        ls=s.ls_c,
+        la=np.inf,
+        density=1000.0,
+        sound_speed=1500.0,
+        frame_displacement=0.0,
+        **{**layer_kw, "focal_return": True},
+    )
+    kept, alone = [], []
+    for r in range(n_real):  # vb.model_orders' seeds: the default's Gaussian noise
+        bg = DiffuseBackground(
+            layer,
+            s.elements(),
+            sines,
+            s.window,
+            s.band,
+            s.c0,
+            s.dim,
+            s.aperture_radius,
+            np.random.default_rng(1000 + r),
+        )
+        assert bg.single is not None
+        bg.single.draw_beads = False
+        multiple, focal = bg.next_orders()
+        assert focal is not None
+        kept.append(multiple)
+        alone.append(focal)
+    split = {
+        "FL": parts["FL"],
+        "paths": parts["paths"],
+        "GF": parts["model"],
+        "GF kept": np.stack(kept),
+        "FR alone": np.stack(alone),
+    }
+    depths = data["depths"]
+    args_c = (freqs, s.elements(), sines, s.c0, s.dim, depths, vb.contrast_half_width(s))
+    conf = {n: bm.confocal_profile(v, *args_c, band=s.band).mean(axis=0) for n, v in split.items()}
+    conf["GF kept + FR"] = conf["GF kept"] + conf["FR alone"]
+    names = [n for n in conf if n != "FL"]
+    print("\nthe focal return split: confocal background of the orders ≥ 2 by depth, dB re Foldy–Lax")
+    print("  depth    " + "  ".join(f"{n:>12}" for n in names))
+    fit = []
+    for j, z in enumerate(depths - s.z_surface):
+        zl = z / s.ls_c
+        if 0.4 <= zl <= 5.1:
+            row = [float(db(conf[n][j] / conf["FL"][j])) for n in names]
+            if zl >= 0.95:
+                fit.append(row)
+            print(f"  {zl:4.1f} ℓ_s " + "  ".join(f"{v:+12.1f}" for v in row))
+    print("  mean 1–5 ℓ_s " + "  ".join(f"{n} {v:+.1f}" for n, v in zip(names, np.mean(fit, axis=0), strict=True)))
+    prof = vb.focused_profiles(s, split, sines, freqs)
+    print(
+        "focused matrix, dB re Foldy–Lax's orders ≥ 2 at Δx = 0; Δx (λ): " + " ".join(map(str, vb.FOCUSED_SEPARATIONS))
+    )
+    for zl, p in prof.items():
+        for name in split:
+            print(f"  {zl:.0f} ℓ_s {name:9s} " + " ".join(f"{v:6.1f}" for v in db(p[name] / p["FL"][0])))
+    t, e_gf = bm.time_envelope(split["GF"], freqs, s.band)
+    t_on = 2 * s.z_surface / s.c0
+    idx = [int(np.argmin(np.abs(t - t_on - tt * 1e-6))) for tt in (2, 5, 10, 20, 30)]
+    print("element-averaged envelope re the default Gaussian field at +2 / 5 / 10 / 20 / 30 µs (dB):")
+    for name in ("FL", "paths", "GF kept", "FR alone"):
+        e = bm.time_envelope(split[name], freqs, s.band)[1]
+        print(f"  {name:9s} " + " / ".join(f"{float(db(e[i] / e_gf[i])):+.1f}" for i in idx))
 
 
 def headline(quick: bool, n_real: int, n_walks: int, layer_kw: dict[str, Any], reuse: bool = False) -> None:
@@ -229,8 +311,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenario", action="store_true", help="the sinking-sphere rig instead of a Foldy–Lax one")
     ap.add_argument("--full", action="store_true", help="with --scenario: the full 32×32 array")
     ap.add_argument("--layer", action="append", default=[], help="with --scenario: the model layer's KEY=VALUE")
-    ap.add_argument("--reuse", action="store_true", help="with --scenario: the paths saved by an earlier run")
+    ap.add_argument("--reuse", action="store_true", help="the paths saved by an earlier run")
     ap.add_argument("--beams", action="store_true", help="3-D reference only: the model beam against the synthesised")
+    ap.add_argument(
+        "--focal-split", action="store_true", help="the focal return alone and the Gaussian field it keeps (§6.6)"
+    )
     args = ap.parse_args(argv)
     if args.scenario:
         headline(not args.full, args.realisations, args.walks, vb.parse_layer(args.layer), args.reuse)
@@ -274,6 +359,9 @@ def main(argv: list[str] | None = None) -> int:
         v_x, _ = vb.model_orders(s, sines, args.model_realisations, {**layer_kw, **overrides})
         parts["model+"] = v_x - v_m1
         print(f"  model+: the default layer with {overrides}")
+    if args.focal_split:
+        focal_split(s, data, sines, parts, layer_kw)
+        return 0
     prof = vb.focused_profiles(s, parts, sines, freqs)
     print(f"\n{s.dim}-D: focused matrix ⟨|R(x − Δx/2, x + Δx/2)|²⟩, dB re Foldy–Lax's orders ≥ 2 at Δx = 0")
     print("Δx (λ):        " + " ".join(f"{x:6.1f}" for x in vb.FOCUSED_SEPARATIONS))

@@ -266,3 +266,37 @@ def test_the_focal_return_draws_its_variance_and_takes_its_energy_from_the_gauss
     assert e_fr < e_plain
     multiple, single = with_fr.next_orders()
     assert single is not None and np.all(np.isfinite(multiple)) and np.all(np.isfinite(single))
+
+
+def test_without_the_beads_the_grid_carries_the_focal_return_alone() -> None:
+    """`SingleScatteringField.draw_beads = False` (bench/transport_paths.py --focal-split): the same draws, the beads'
+    reflectivity zero, so the beads' field and the focal return alone add up to the whole grid's field, and a grid
+    without a focal return gives nothing."""
+    from fpcore.acquisition import PlaneWaveSequence, Probe
+    from fpcore.simulate.diffuse import DiffuseBackground
+    from fpcore.simulate.medium import ScatteringLayer
+    from fpcore.simulate.waves import Band, TimeWindow
+
+    probe = Probe.linear(32, 0.34e-3, 2.2e6, 0.8e6)
+    seq = PlaneWaveSequence.uniform_sines(7, 0.2)
+    win = TimeWindow.covering(10.4e6, 14e-6, 30e-6, guard=10e-6)
+
+    def single(fr: bool, beads: bool, focal: bool = True) -> np.ndarray:
+        lay = ScatteringLayer(
+            z_surface=10e-3, ls=1.8e-3, la=8e-3, envelope="diffusion", single_scattering="field", focal_return=fr
+        )
+        bg = DiffuseBackground(
+            lay, probe.positions, seq.sines, win, Band(1.8e6, 2.6e6), 1500.0, 2, 0.5 * probe.aperture[0],
+            np.random.default_rng(5),
+        )  # fmt: skip
+        ss = bg.single
+        assert ss is not None
+        ss.draw_beads = beads
+        if fr and not focal:
+            ss._fr_var = np.zeros_like(ss._fr_var)
+        return ss.spectrum()
+
+    whole, alone, beads = single(True, True), single(True, False), single(True, True, focal=False)
+    assert np.abs(alone).max() > 0.05 * np.abs(whole).max()
+    np.testing.assert_allclose(beads + alone, whole, rtol=0, atol=1e-4 * np.abs(whole).max())
+    assert not np.any(single(False, False))

@@ -138,6 +138,10 @@ class SingleScatteringField:
         self._fr_var: np.ndarray | None = None
         self._fr_g1: np.ndarray | None = None
         self.fr_state: np.ndarray | None = None
+        # False leaves the focal return alone on the grid, the beads' reflectivity zero (a diagnostic: the focal
+        # return's own share of the focused matrix, bench/transport_paths.py --focal-split). Set before the first
+        # spectrum.
+        self.draw_beads = True
         self._plans: list[tuple] | None = None  # per sub-band, built at the first spectrum
         self._beams: np.ndarray | None = None
         self._plan_lock: threading.Lock | None = None  # made with the plans, shared with them (`prepare`)
@@ -205,7 +209,7 @@ class SingleScatteringField:
         # and e^{−i k_z0 d} (the axial carrier taken out of the NUFFT's spatial frequencies below); the transmit
         # leg's extinction e^{−d/(2 c_θ ℓ_ext)} per transmit (module doc).
         depth_w = np.exp(-self.depths * self._q_out / (2 * lext) - 1j * self._kz0 * self.depths)
-        depth_w *= np.sqrt(strength * self._cell)
+        depth_w *= np.sqrt(strength * self._cell) if self.draw_beads else 0.0
         tx_w = np.exp(-self.depths[None, :] / (2 * lext * self._ci[:, None])).astype(np.float32)  # (N_θ, nz)
         fr_w = None
         if self._fr_var is not None:  # the focal return's variance already holds its legs' extinction
