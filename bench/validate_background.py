@@ -9,6 +9,9 @@
     .venv/bin/python bench/validate_background.py --layer envelope=diffusion --layer cbs=True \
         --layer single_scattering=field --layer angular=halo --layer memory=True --match-dispersion --slab
                                                      # the memory-effect option (docs/design.md §6.5)
+    .venv/bin/python bench/validate_background.py --layer envelope=diffusion --layer cbs=True \
+        --layer single_scattering=field --layer angular=halo --layer focal_return=True --layer confocal_notch=True \
+        --match-dispersion --slab          # the focal return with the confocal notch (docs/design.md §6.6, F4)
     .venv/bin/python bench/validate_background.py ... --double-scattering 6   # FL's focused matrix by order too
     .venv/bin/python bench/validate_background.py --reference out/bench/fl_reference_2d_12el.npz ...  # another rig
     .venv/bin/python bench/validate_background.py --reference out/bench/fl_reference_3d_deep.npz --slab \

@@ -55,6 +55,7 @@ import scipy.fft as sfft
 
 from ..acquisition import element_grid_axes
 from ..geometry import cosines
+from .confocal_notch import ConfocalNotch
 from .memory import MemoryKernel, block_energy_gain, block_kernel, effective_spread, grid_kernel, lattice_steps
 from .paths import draw_paths, focal_return
 from .reciprocity import ReciprocalBlock
@@ -386,6 +387,23 @@ class DiffuseBackground:
                 self._memory_block = block_kernel(self.block.m_inputs, spacings, steps, beta)
                 g = block_energy_gain(el, spacings, self.block.m_inputs, steps, beta, np.sqrt(kc2))
                 self._block_env = [e / np.sqrt(g).astype(np.float32) for e in self._block_env]
+        # With the confocal notch, the Gaussian field is drawn out of the confocal subspace the focal return fills,
+        # on the array's elements (`confocal_notch`, docs/design.md §6.6, F4).
+        self._notch: ConfocalNotch | None = None
+        if layer.confocal_notch:
+            # from the surface to a normally incident echo at the period's end
+            z_range = (layer.z_surface, 0.5 * c0 * (window.t0 + window.period))
+            self._notch = ConfocalNotch(
+                self.s_out,
+                spacings,
+                s,
+                self.freqs,
+                c0,
+                dim,
+                z_range,
+                sensor=(self._project, self._adjoint),
+                time_grid=(self.n_bb, max(1, round(NOTCH_ENVELOPE_WINDOW / self.dt))),
+            )
         self.state: np.ndarray | None = None
         self.block_state: np.ndarray | None = None
         self._frozen: tuple[np.ndarray, np.ndarray | None] | None = None
@@ -425,6 +443,8 @@ class DiffuseBackground:
         if self.single is not None:
             self.single.prepare()
             new.single = copy.copy(self.single)
+        if self._notch is not None:
+            self._notch.prepare()
         new.restart(rng)
         return new
 
@@ -516,6 +536,10 @@ class DiffuseBackground:
         """M(f, u, θ) = Σ_o aw(o, θ, f) e^{−ik s_o·u} on the multiple-scattering grid."""
         return project_plane_waves(aw, self.freqs, self.c0, self.elements, self.s_out, self._axes, self._keep)
 
+    def _adjoint(self, m: np.ndarray) -> np.ndarray:
+        """The adjoint of `_project`: aw(o, θ, f) = Σ_u M(f, u, θ) e^{+ik s_o·u}."""
+        return adjoint_plane_waves(m, self.freqs, self.c0, self.elements, self.s_out, self._axes, self._keep)
+
     def _shaped(self, state: np.ndarray, envelopes: list[np.ndarray]) -> np.ndarray:
         """Envelope-shaped noise, Fourier-transformed onto the band bins, sub-bands blended."""
         spec = np.zeros(state.shape[:2] + (self.freqs.size,), dtype=np.complex64)
@@ -579,7 +603,8 @@ class DiffuseBackground:
         if self._frozen is not None:
             return self._frozen
         self._advance()
-        multiple = self._project(self.multiple_spectrum() * self.weights[:, None, None])
+        aw = self.multiple_spectrum() * self.weights[:, None, None]
+        multiple = self._project(aw) if self._notch is None else self._notch(aw)
         single = None
         if self.single is not None:  # on its own, finer grid (single_scattering.output_grid)
             ss = self.single
@@ -588,6 +613,10 @@ class DiffuseBackground:
             self._frozen, self.state, self.block_state = (multiple, single), None, None
         return multiple, single
 
+
+#: The confocal notch keeps the Gaussian field's energy per time, averaged over this window (s; about a pulse length:
+#: the transport envelope varies over microseconds; docs/design.md §6.6, F4).
+NOTCH_ENVELOPE_WINDOW = 0.5e-6
 
 #: Walks drawn for the focal return's depth profile (`focal_return_tables`), from a fixed seed: a table of the
 #: rig, not a draw of the frame (its Monte-Carlo scatter is a few % per depth cell; docs/design.md §6.6).
@@ -704,6 +733,36 @@ def project_plane_waves(
             p = np.exp(-1j * k[m] * phase_u).astype(np.complex64)
         out[m] = p @ aw[:, :, m]
         p *= step
+    return out
+
+
+def adjoint_plane_waves(
+    m: np.ndarray,
+    freqs: np.ndarray,
+    c0: float,
+    elements: np.ndarray,
+    s_out: np.ndarray,
+    axes: list[np.ndarray] | None = None,
+    keep: np.ndarray | None = None,
+) -> np.ndarray:
+    """The adjoint of `project_plane_waves`: aw(o, θ, f) = Σ_u M(f, u, θ) e^{+ik s_o·u}, (N_o, N_θ, N_f) complex64."""
+    k = 2 * np.pi * np.asarray(freqs, dtype=np.float64) / c0
+    n_f, n_u, n_i = m.shape
+    el = np.asarray(elements, dtype=np.float64)
+    grid = element_grid_axes(el) if axes is not None and len(axes) == 2 else None
+    if grid is not None and axes is not None and keep is not None:
+        ux, uy = grid
+        sx, sy = axes
+        px = np.exp(-1j * k[:, None, None] * ux[None, :, None] * sx[None, None, :]).astype(np.complex64)
+        py = np.exp(-1j * k[:, None, None] * uy[None, :, None] * sy[None, None, :]).astype(np.complex64)
+        h = np.matmul(np.conj(np.transpose(py, (0, 2, 1))), m.reshape(n_f, uy.size, ux.size * n_i))  # (f, sy, ux·θ)
+        h = np.matmul(np.conj(np.transpose(px, (0, 2, 1)))[:, None], h.reshape(n_f, sy.size, ux.size, n_i))
+        full = np.transpose(h, (2, 1, 3, 0)).reshape(sx.size * sy.size, n_i, n_f)  # (sx·sy, θ, f)
+        return np.ascontiguousarray(full[keep], dtype=np.complex64)
+    out = np.empty((np.asarray(s_out).shape[0], n_i, n_f), dtype=np.complex64)
+    phase_u = el[:, :2] @ np.asarray(s_out, dtype=np.float64).T  # (N_u, N_o)
+    for j in range(n_f):
+        out[:, :, j] = np.exp(1j * k[j] * phase_u).T.astype(np.complex64) @ m[j]
     return out
 
 

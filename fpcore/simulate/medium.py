@@ -93,7 +93,9 @@ class ScatteringLayer:
     output direction carries the same envelope, timed at the array's centre) or "halo" (each direction sees
     the halo where its ray through the array meets the surface, at that ray's delay: `diffuse` module doc);
     focal_return: the orders ≥ 2 whose ends the rig sees as one point, drawn as a second reflectivity on the beads'
-    grid at their apparent depth (`paths.focal_return_variance`, docs/design.md §6.6; needs single_scattering="field").
+    grid at their apparent depth (`paths.focal_return_variance`, docs/design.md §6.6; needs single_scattering="field");
+    confocal_notch: with the focal return, the Gaussian field drawn out of the confocal subspace on the array's
+    elements, where the focal return already counts every path's share (`confocal_notch`, F4; docs/design.md §6.6).
     """
 
     z_surface: float
@@ -117,6 +119,7 @@ class ScatteringLayer:
     angular: str = "uniform"
     memory: bool = False
     focal_return: bool = False
+    confocal_notch: bool = False
 
     def __post_init__(self) -> None:
         if self.angular not in ("uniform", "halo"):
@@ -128,6 +131,10 @@ class ScatteringLayer:
         if self.focal_return and self.single_scattering != "field":
             raise ValueError(
                 "focal_return: expected single_scattering='field' as well (it is drawn on the beads' grid)"
+            )
+        if self.confocal_notch and not self.focal_return:
+            raise ValueError(
+                "confocal_notch: expected focal_return=True as well (the notch leaves the focus to the focal return)"
             )
         if self.single_scattering not in ("envelope", "field"):
             raise ValueError(f"single_scattering: expected 'envelope' or 'field', got {self.single_scattering!r}")
