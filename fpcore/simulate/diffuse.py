@@ -693,6 +693,20 @@ def _beads_stream(rng: np.random.Generator) -> np.random.Generator:
     return np.random.default_rng(rng.integers(2**63))
 
 
+def _separable_phases(
+    k: np.ndarray, el: np.ndarray, axes: list[np.ndarray] | None, keep: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Per-axis phases e^{−ik u_x s_x} (f, ux, sx) and e^{−ik u_y s_y} (f, uy, sy) of a regular matrix array and an
+    output grid given by its `axes` and `keep` mask, or None where the map is not separable."""
+    grid = element_grid_axes(el) if axes is not None and len(axes) == 2 else None
+    if grid is None or axes is None or keep is None:
+        return None
+    (ux, uy), (sx, sy) = grid, axes
+    px = np.exp(-1j * k[:, None, None] * ux[None, :, None] * sx[None, None, :]).astype(np.complex64)
+    py = np.exp(-1j * k[:, None, None] * uy[None, :, None] * sy[None, None, :]).astype(np.complex64)
+    return px, py
+
+
 def project_plane_waves(
     aw: np.ndarray,
     freqs: np.ndarray,
@@ -710,15 +724,13 @@ def project_plane_waves(
     k = 2 * np.pi * np.asarray(freqs, dtype=np.float64) / c0
     n_f, n_i = k.size, aw.shape[1]
     el = np.asarray(elements, dtype=np.float64)
-    grid = element_grid_axes(el) if axes is not None and len(axes) == 2 else None
-    if grid is not None and axes is not None and keep is not None:
-        ux, uy = grid
+    phases = _separable_phases(k, el, axes, keep)
+    if phases is not None and axes is not None:
+        px, py = phases
         sx, sy = axes
         flat = np.zeros((sx.size * sy.size, n_i, n_f), dtype=np.complex64)
         flat[keep] = aw
         full = flat.reshape(sx.size, sy.size, n_i, n_f)
-        px = np.exp(-1j * k[:, None, None] * ux[None, :, None] * sx[None, None, :]).astype(np.complex64)
-        py = np.exp(-1j * k[:, None, None] * uy[None, :, None] * sy[None, None, :]).astype(np.complex64)
         g = np.transpose(full, (3, 1, 0, 2))  # (f, sy, sx, θ)
         g = np.matmul(px[:, None], g)  # (f, sy, ux, θ)
         g = np.matmul(py, g.reshape(n_f, sy.size, -1))  # (f, uy, ux·θ)
@@ -749,14 +761,13 @@ def adjoint_plane_waves(
     k = 2 * np.pi * np.asarray(freqs, dtype=np.float64) / c0
     n_f, n_u, n_i = m.shape
     el = np.asarray(elements, dtype=np.float64)
-    grid = element_grid_axes(el) if axes is not None and len(axes) == 2 else None
-    if grid is not None and axes is not None and keep is not None:
-        ux, uy = grid
+    phases = _separable_phases(k, el, axes, keep)
+    if phases is not None and axes is not None:
+        px, py = phases
         sx, sy = axes
-        px = np.exp(-1j * k[:, None, None] * ux[None, :, None] * sx[None, None, :]).astype(np.complex64)
-        py = np.exp(-1j * k[:, None, None] * uy[None, :, None] * sy[None, None, :]).astype(np.complex64)
-        h = np.matmul(np.conj(np.transpose(py, (0, 2, 1))), m.reshape(n_f, uy.size, ux.size * n_i))  # (f, sy, ux·θ)
-        h = np.matmul(np.conj(np.transpose(px, (0, 2, 1)))[:, None], h.reshape(n_f, sy.size, ux.size, n_i))
+        n_ux, n_uy = px.shape[1], py.shape[1]
+        h = np.matmul(np.conj(np.transpose(py, (0, 2, 1))), m.reshape(n_f, n_uy, n_ux * n_i))  # (f, sy, ux·θ)
+        h = np.matmul(np.conj(np.transpose(px, (0, 2, 1)))[:, None], h.reshape(n_f, sy.size, n_ux, n_i))
         full = np.transpose(h, (2, 1, 3, 0)).reshape(sx.size * sy.size, n_i, n_f)  # (sx·sy, θ, f)
         return np.ascontiguousarray(full[keep], dtype=np.complex64)
     out = np.empty((np.asarray(s_out).shape[0], n_i, n_f), dtype=np.complex64)
