@@ -300,3 +300,82 @@ def test_without_the_beads_the_grid_carries_the_focal_return_alone() -> None:
     assert np.abs(alone).max() > 0.05 * np.abs(whole).max()
     np.testing.assert_allclose(beads + alone, whole, rtol=0, atol=1e-4 * np.abs(whole).max())
     assert not np.any(single(False, False))
+
+
+def _exact_confocal_ratio(
+    first: np.ndarray, last: np.ndarray, length: float, beams: bool
+) -> tuple[float, float, P.FocalRig]:
+    """The confocal return of one path (ends `first`, `last`, internal length `length`) over that of a point on the
+    axis at its apparent range, both by the direct sum — the paths' field at the elements (`path_spectra`, the
+    transmits as `PlaneWaveBeams`) delay-and-summed at the focus over a lateral patch, energy per frequency — and
+    the band-averaged W′ of `discrete_focal_overlap` with the same weights: a small 8 × 8 rig, 5 × 5 sines."""
+    c0, zs, pitch = 1500.0, 10e-3, 0.68e-3
+    x = (np.arange(8) - 3.5) * pitch
+    yy, xx = np.meshgrid(x, x, indexing="ij")
+    el = np.stack([xx.ravel(), yy.ravel(), np.zeros(64)], axis=1)
+    s1 = np.linspace(-0.2, 0.2, 5)
+    sy, sx = np.meshgrid(s1, s1, indexing="ij")
+    sines = np.stack([sx.ravel(), sy.ravel()], axis=1)
+    aperture = 8 * pitch
+    lam_c = c0 / 2.2e6
+    freqs = np.linspace(1.8e6, 2.6e6, 9)
+    rays = P.StraightRays(el, zs, 3)
+    tx = P.PlaneWaveBeams(sines, aperture if beams else 1.0, zs, lam_c)
+    r_app = 0.5 * (first[2] + last[2] + length)
+    centre = np.array([0.0, 0.0, r_app])
+
+    def field(a: np.ndarray, b: np.ndarray, ell: float, first_order: bool) -> np.ndarray:
+        one = P.Paths(3, a[None], np.array([0]), b[None], np.array([2], dtype=np.int32), np.array([ell]), 1e6,
+                      np.array([1.0]), 1.0)  # fmt: skip
+        return P.path_spectra(one, freqs, c0, np.full(freqs.size, 1e6), rays, tx, first_order=first_order)
+
+    g = np.linspace(-6e-3, 6e-3, 41)
+    py, px = np.meshgrid(g, g, indexing="ij")
+    pts = np.stack([px.ravel(), py.ravel(), np.full(px.size, r_app)], axis=1)
+    d_out = np.linalg.norm(pts[:, None, :] - el[None], axis=2)
+    d_in = pts[:, :2] @ sines.T + r_app * np.sqrt(1 - (sines**2).sum(1))[None]
+    k = 2 * np.pi * freqs / c0
+
+    def energy(v: np.ndarray) -> np.ndarray:
+        focused = [np.sum((np.exp(1j * k[m] * d_out) @ v[m]) * np.exp(1j * k[m] * d_in), 1) for m in range(k.size)]
+        return np.sum(np.abs(np.array(focused)) ** 2, axis=1)
+
+    e_path, e_point = energy(field(first, last, length, False)), energy(field(centre, centre, 0.0, True))
+    rig = P.FocalRig.from_grid(sines, np.array([aperture] * 2), 3, np.array([aperture] * 2) if beams else None, lam_c)
+    assert rig is not None
+    w = np.array([P.discrete_focal_overlap(first[None], last[None], np.array([r_app]), kk, rig)[0] for kk in k])
+    return float(e_path.sum() / e_point.sum()), float(np.sum(w * e_point) / e_point.sum()), rig
+
+
+@pytest.mark.parametrize(
+    ("first", "last", "length", "beams", "tol"),
+    [
+        ((0.0, 0.0, 14e-3), (0.0, 0.0, 14e-3), 1e-9, True, 0.02),  # a point: W = 2
+        ((0.0, 0.0, 12e-3), (0.0, 0.0, 12e-3), 16e-3, False, 0.15),  # a loop seen 8 mm deeper (defocus, spreading)
+        ((0.0, 0.0, 12e-3), (0.0, 0.0, 12e-3), 16e-3, True, 0.15),  # the same, the steered beams walked off at depth
+        ((-3.4e-3, 0.0, 14e-3), (3.4e-3, 0.0, 14e-3), 6.8e-3, False, 0.25),  # ends λ/Δs apart: a grating lobe each
+    ],
+)
+def test_the_discrete_focal_overlap_is_the_direct_sums_confocal_return(
+    first: tuple, last: tuple, length: float, beams: bool, tol: float
+) -> None:
+    """Eq. F2′ (docs/design.md §6.6) against the direct sum, per path: the confocal return of the path's field over
+    that of a point on the axis at its apparent range — where (F2) misses the ends' spreading and the beams' walk-off
+    (the loop) and the transmits' grating lobes (ends λ/Δs apart, where F2 is ≈ 0)."""
+    exact, w, rig = _exact_confocal_ratio(np.array(first), np.array(last), length, beams)
+    assert w == pytest.approx(exact, rel=tol)
+    if first == last and length > 1e-6 and beams:  # the walk-off brightens the loop over the unbounded waves'
+        assert w > 1.5 * _exact_confocal_ratio(np.array(first), np.array(last), length, False)[1]
+
+
+def test_the_discrete_focal_overlap_needs_a_grid_of_transmits() -> None:
+    """`FocalRig.from_grid`: a full grid of sines along the lateral axes gives the rig, anything else None (the focal
+    return then keeps eq. F2)."""
+    s1 = np.linspace(-0.2, 0.2, 3)
+    sy, sx = np.meshgrid(s1, s1, indexing="ij")
+    grid = np.stack([sx.ravel(), sy.ravel()], axis=1)
+    rig = P.FocalRig.from_grid(grid, np.array([5e-3, 5e-3]), 3, None, 0.68e-3)
+    assert rig is not None and [u.size for u in rig.sines] == [3, 3]
+    assert P.FocalRig.from_grid(grid[:-1], np.array([5e-3, 5e-3]), 3, None, 0.68e-3) is None
+    line = np.stack([s1, np.zeros(3)], axis=1)
+    assert P.FocalRig.from_grid(line, np.array([5e-3]), 2, None, 0.68e-3) is not None

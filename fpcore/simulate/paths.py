@@ -212,6 +212,132 @@ def focal_overlap(
     return 0.5 * (forward + reverse) + coherence * term(widened(at2, mean), widened(ar2, mean), True)
 
 
+@dataclass(frozen=True)
+class FocalRig:
+    """The rig's transmits and receive for the discrete focal overlap (`discrete_focal_overlap`, docs/design.md §6.6,
+    eq. F2′): the transmits' sines along each lateral axis (a full grid of them: (x, y) pairs over every
+    combination), the receive aperture per axis (N_u × pitch), and the transmits' beams — each a plane wave
+    confined to `beam_aperture` plus its diffraction spread and steered (`single_scattering`'s beam:
+    `beam_half_width`, `beam_gain`, cosine edges over ±`BEAM_SOFT` of the half-width), at the wavelength
+    `beam_wavelength` — or unbounded plane waves where `beam_aperture` is None."""
+
+    sines: tuple[np.ndarray, ...]  # per lateral axis, (N_j,)
+    aperture: np.ndarray  # (n_axes,)
+    beam_aperture: np.ndarray | None = None  # (n_axes,)
+    beam_wavelength: float = 0.0
+
+    @staticmethod
+    def from_grid(
+        sines: np.ndarray, aperture: np.ndarray, dim: int, beam_aperture: np.ndarray | None, wavelength: float
+    ) -> FocalRig | None:
+        """The rig of transmits `sines` (N_θ, 2) if they form a full grid along the lateral axes, else None."""
+        si = np.asarray(sines, dtype=np.float64)
+        axes = 2 if dim == 3 else 1
+        per_axis = tuple(np.unique(np.round(si[:, d], 9)) for d in range(axes))
+        n_grid = int(np.prod([u.size for u in per_axis]))
+        if si.shape[0] != n_grid or np.unique(np.round(si[:, :axes], 9), axis=0).shape[0] != n_grid:
+            return None
+        ap = np.resize(np.asarray(aperture, dtype=np.float64), axes)
+        beam = None if beam_aperture is None else np.resize(np.asarray(beam_aperture, dtype=np.float64), axes)
+        return FocalRig(per_axis, ap, beam, float(wavelength))
+
+
+#: The beams' cosine edges, a fraction of the half-width either side of it (`SingleScatteringField.beam`).
+BEAM_SOFT = 0.15
+
+
+def _beam_weights(rig: FocalRig, axis: int, x: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Each transmit's beam amplitude along one axis at the points (x, range z): (N, N_j); ones if unbounded."""
+    s = rig.sines[axis]
+    if rig.beam_aperture is None:
+        return np.ones((x.size, s.size))
+    ap, lam = float(rig.beam_aperture[axis]), rig.beam_wavelength
+    hw = beam_half_width(ap, z, lam)[:, None]
+    off = np.abs(x[:, None] - z[:, None] * (s / np.sqrt(1.0 - s**2))[None, :])
+    t = np.clip((off - (1 - BEAM_SOFT) * hw) / (2 * BEAM_SOFT * hw), 0.0, 1.0)
+    return (0.5 + 0.5 * np.cos(np.pi * t)) * beam_gain(ap, z, lam)[:, None]
+
+
+def _receive(x_end: np.ndarray, r_end: np.ndarray, r_focus: np.ndarray, k: float, sigma: float) -> tuple:
+    """The receive focus at the range r_focus seeing a point at (x_end, r_end), one axis, as the complex Gaussian
+    e^{−a x² + b x + c} of the focus position x (Fresnel, Gaussian apodization of rms width σ; amplitude
+    r_end^{−1/2} per axis, the leg's spreading)."""
+    beta = 1.0 / sigma**2 - 1j * k * (1.0 / r_focus - 1.0 / r_end)
+    a = -0.5j * k / r_focus + k**2 / (2 * beta * r_focus**2)
+    b = k**2 * x_end / (r_focus * r_end * beta)
+    c = (
+        -0.5 * np.log(r_end)
+        + 0.5 * np.log(2 * np.pi / beta)
+        - 0.5j * k * x_end**2 / r_end
+        - k**2 * x_end**2 / (2 * beta * r_end**2)
+    )
+    return a, b, c
+
+
+def _overlap_integral(
+    w_f: np.ndarray, rx_f: tuple, w_g: np.ndarray, rx_g: tuple, k: float, s: np.ndarray
+) -> np.ndarray:
+    """∫ F conj(G) dx over the focus position, F = Σ_s w_f[s] e^{iksx} × receive_f(x) (and G), in closed form: a
+    Gaussian integral per pair of transmits, whose exponent depends on the pair through s − s' only."""
+    a = rx_f[0] + np.conj(rx_g[0])
+    b = rx_f[1] + np.conj(rx_g[1])
+    c = rx_f[2] + np.conj(rx_g[2])
+    diff = s[:, None] - s[None, :]
+    uniq, inv = np.unique(np.round(diff / max(float(np.ptp(s)), 1e-12), 9), return_inverse=True)
+    d = uniq * max(float(np.ptp(s)), 1e-12)
+    q = b[:, None] + 1j * k * d[None, :]
+    e = np.exp(q**2 / (4 * a[:, None]) + c[:, None])  # (N, N_Δ)
+    pair = (w_f[:, :, None] * np.conj(w_g)[:, None, :]).reshape(w_f.shape[0], -1)
+    gather = np.zeros((inv.size, d.size))
+    gather[np.arange(inv.size), inv.ravel()] = 1.0
+    return np.sqrt(np.pi / a) * np.sum((pair @ gather) * e, axis=1)
+
+
+def discrete_focal_overlap(
+    first: np.ndarray, last: np.ndarray, r_app: np.ndarray, k: float, rig: FocalRig, chunk: int = 20000
+) -> np.ndarray:
+    """W (N,) of paths with ends `first`, `last` (N, 3; z the range from the array) seen at the apparent range
+    r_app (N,), relative to a point on the array's axis in focus there (docs/design.md §6.6, eq. F2′):
+
+        W = [∫|F|² + ∫|F'|² + 2 Re ∫F F'*] / (2 ∫|P|²),   F(x) = T(x; r₁) R(x; r_n), F' = T(x; r_n) R(x; r₁),
+
+    with the transmit focus T(x; r) = Σ_θ b_θ(r) e^{ik[a_θ·(x − ρ) + c_θ(r_app − z)]} summed over the rig's own
+    transmits, each lit by its beam at r (`FocalRig`: the steered beams walk off the axis with depth, so a shallow
+    end sees transmits a deep focus no longer gets), and the receive R(x; r) the aperture's Fresnel focus at r_app of
+    the spherical wave from r, its amplitude spreading from the end's own range — separable along the lateral axes,
+    each integral in closed form (a Gaussian apodization of the receive, the transmits' discrete sum kept: their
+    grating lobes λ/Δs apart). 2 where the ends coincide in focus, as (F2)."""
+    p1, pn = np.asarray(first, dtype=np.float64), np.asarray(last, dtype=np.float64)
+    ra = np.asarray(r_app, dtype=np.float64)
+    out = np.empty(ra.size)
+    for c0 in range(0, ra.size, chunk):
+        sl = slice(c0, min(c0 + chunk, ra.size))
+        a, b, r = p1[sl], pn[sl], ra[sl]
+        num_f = np.ones(r.size)
+        num_r = np.ones(r.size)
+        den = np.ones(r.size)
+        cross = np.ones(r.size, dtype=np.complex128)
+        for j, s in enumerate(rig.sines):
+            sigma = float(rig.aperture[j]) / (2 * np.pi * A_W)  # the receive's focus width A_W λ R/D (F2)
+            c = np.sqrt(1.0 - s**2)
+
+            def lit(end: np.ndarray, s: np.ndarray = s, c: np.ndarray = c, j: int = j, r: np.ndarray = r) -> np.ndarray:
+                phase = (c[None, :] - 1.0) * (r - end[:, 2])[:, None] - s[None, :] * end[:, j : j + 1]
+                return _beam_weights(rig, j, end[:, j], end[:, 2]) * np.exp(1j * k * phase)
+
+            w_1, w_n = lit(a), lit(b)
+            w_p = _beam_weights(rig, j, np.zeros(r.size), r).astype(np.complex128)
+            rx_n = _receive(b[:, j], b[:, 2], r, k, sigma)
+            rx_1 = _receive(a[:, j], a[:, 2], r, k, sigma)
+            rx_p = _receive(np.zeros(r.size), r, r, k, sigma)
+            num_f *= _overlap_integral(w_1, rx_n, w_1, rx_n, k, s).real
+            num_r *= _overlap_integral(w_n, rx_1, w_n, rx_1, k, s).real
+            cross *= _overlap_integral(w_1, rx_n, w_n, rx_1, k, s)
+            den *= _overlap_integral(w_p, rx_p, w_p, rx_p, k, s).real
+        out[sl] = (num_f + num_r + 2 * cross.real) / (2 * np.maximum(den, 1e-300))
+    return out
+
+
 def focal_return(
     paths: Paths,
     depths: np.ndarray,
@@ -223,6 +349,7 @@ def focal_return(
     transmit_span: np.ndarray,
     aperture: np.ndarray,
     z_surface: float,
+    rig: FocalRig | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The focal return of the orders ≥ 2 (docs/design.md §6.6): the paths' ends that the rig sees as one point.
 
@@ -242,7 +369,10 @@ def focal_return(
     The rig's foci: the transmits' amplitude width A_W λ/S per lateral axis over the span of sines S =
     `transmit_span` (N_θ Δs per axis), the receive's A_W λ/(2 NA) over the aperture D = `aperture` at the range
     R = z_surface + d, NA = (D/2)/√(R² + D²/4) (A_W λ R/D at small NA); λ at each frequency. ℓ_s(f) = `ls`,
-    absorption ℓ_a = `la`."""
+    absorption ℓ_a = `la`. With `rig` (the rig's own transmits and their beams, `FocalRig`), ν takes the discrete
+    overlap W′ of eq. F2′ (`discrete_focal_overlap`: the ends lit by the beams that reach them, the receive spreading
+    from each end's range, the transmits' grating lobes) instead of (F2); κ keeps (F2)'s W, the share of a path's
+    energy that is point-like."""
     dep = np.asarray(depths, dtype=np.float64)
     h = float(dep[1] - dep[0]) if dep.size > 1 else 1.0
     s_grid = np.asarray(lengths, dtype=np.float64)
@@ -270,6 +400,18 @@ def focal_return(
     q_in = secant_over_sines(span)
     r_tab = np.linspace(z_surface, z_surface + max(float(dn.max(initial=0.0)), 1e-9), 257)
     q_out = np.interp(z_surface + dn, r_tab, secant_over_aperture(ap, r_tab))
+    first, r_app = paths.start[w], z_surface + d_app
+    if rig is not None:  # the window under the aperture (within the first scatterings' square) where F2′ is taken
+        start_half = 0.5 * paths.start_area ** (1.0 / axes)
+        half = np.minimum(0.5 * rig.aperture, start_half)
+        under = np.all(np.abs(0.5 * (first[:, :axes] + paths.end[:, :axes])) <= half[None, :], axis=1)
+        window_area = float(np.prod(2 * half))
+        sel = in_grid & under
+        # W′ at (up to) three frequencies of the band, linear in between (smooth: a few % at the midpoints)
+        anchors = f if f.size <= 3 else f[[0, f.size // 2, f.size - 1]]
+        w_anchor = np.stack(
+            [discrete_focal_overlap(first[sel], paths.end[sel], r_app[sel], 2 * np.pi * fa / c0, rig) for fa in anchors]
+        )
     for m in range(f.size):
         lam, lf = c0 / f[m], float(ls[m])
         k = 2 * np.pi / lam
@@ -282,11 +424,24 @@ def focal_return(
         r = (z_surface + d_app)[:, None]
         a_r = A_W * lam * np.sqrt(r**2 + (ap[None, :] / 2) ** 2) / ap[None, :]  # A_W λ/(2 NA), NA = sin of the edge ray
         ov = focal_overlap(delta, A_W * lam / span, a_r, d_app - d1, d_app - dn, k)
-        var[m] = np.bincount(cell[in_grid], weights=(nt2 * energy * ov)[in_grid], minlength=dep.size) / h
+        weight = nt2 * energy * ov
+        if rig is not None:  # F2′ on the axis: the paths whose midpoint lies under the aperture, per its area
+            weight = np.zeros_like(energy)
+            weight[sel] = nt2 * energy[sel] * _between(f[m], anchors, w_anchor) * paths.start_area / window_area
+        var[m] = np.bincount(cell[in_grid], weights=weight[in_grid], minlength=dep.size) / h
         total = np.bincount(age[in_ages], weights=energy[in_ages], minlength=s_grid.size)
         moved = np.bincount(age[in_ages], weights=(energy * ov / 2)[in_ages], minlength=s_grid.size)
         kept[m] = np.where(total > 0, np.clip(1.0 - moved / np.maximum(total, 1e-300), 0.0, 1.0), 1.0)
     return var, kept
+
+
+def _between(x: float, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+    """Rows ys (n, N) linearly interpolated at x between the abscissae xs (n,), held beyond them."""
+    if xs.size == 1:
+        return ys[0]
+    j = int(np.clip(np.searchsorted(xs, x), 1, xs.size - 1))
+    t = float(np.clip((x - xs[j - 1]) / (xs[j] - xs[j - 1]), 0.0, 1.0))
+    return (1 - t) * ys[j - 1] + t * ys[j]
 
 
 def far_green(k: float, d: np.ndarray, dim: int) -> np.ndarray:
