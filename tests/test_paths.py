@@ -369,8 +369,8 @@ def test_the_discrete_focal_overlap_is_the_direct_sums_confocal_return(
 
 
 def test_the_discrete_focal_overlap_needs_a_grid_of_transmits() -> None:
-    """`FocalRig.from_grid`: a full grid of sines along the lateral axes gives the rig, anything else None (the focal
-    return then keeps eq. F2)."""
+    """`FocalRig.from_grid`: a full grid of sines along the lateral axes gives the rig (eq. F2′ separates along the
+    axes), anything else None."""
     s1 = np.linspace(-0.2, 0.2, 3)
     sy, sx = np.meshgrid(s1, s1, indexing="ij")
     grid = np.stack([sx.ravel(), sy.ravel()], axis=1)

@@ -57,7 +57,7 @@ from ..acquisition import element_grid_axes
 from ..geometry import cosines
 from .confocal_notch import ConfocalNotch
 from .memory import MemoryKernel, block_energy_gain, block_kernel, effective_spread, grid_kernel, lattice_steps
-from .paths import FocalRig, draw_paths, focal_return
+from .paths import draw_paths, focal_return
 from .reciprocity import ReciprocalBlock
 from .single_scattering import SingleScatteringField
 from .waves import Band, TimeWindow
@@ -640,8 +640,7 @@ def focal_return_tables(
     frozen; a path of length 2d, DWS) and the share of the energy the Gaussian field keeps by path length (s grid,
     (n_sub, N_s)). Walks in the layer (`paths.draw_paths`, first scatterings weighted by the incident extinction)
     summed by `paths.focal_return` with the rig's foci: the transmits' span of sines and the array's aperture per
-    lateral axis (a focus needs ≥ 2 transmits along each), and for ν the rig's own transmits lit by the beads' beams
-    (`paths.FocalRig`, eq. F2′) where the sines form a full grid."""
+    lateral axis (a focus needs ≥ 2 transmits along each)."""
     axes = 2 if dim == 3 else 1
     el, si = np.asarray(elements, dtype=np.float64), np.asarray(sines, dtype=np.float64)
     span, aperture = [], []
@@ -671,8 +670,6 @@ def focal_return_tables(
         start_decay=lext_c,
     )
     s_grid = np.linspace(0.0, s_end, FOCAL_LENGTH_BINS)
-    # The rig's own transmits and their beams for ν (eq. F2′), when the transmits form a full grid of sines.
-    rig = FocalRig.from_grid(si, np.array(aperture), dim, np.array(single.beam_aperture), single.beam_wavelength)
     var, kept = focal_return(
         walks,
         single.depths,
@@ -684,7 +681,6 @@ def focal_return_tables(
         np.array(span),
         np.array(aperture),
         layer.z_surface,
-        rig,
     )
     g1 = None
     if layer.frame_displacement > 0:

@@ -349,7 +349,6 @@ def focal_return(
     transmit_span: np.ndarray,
     aperture: np.ndarray,
     z_surface: float,
-    rig: FocalRig | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The focal return of the orders ≥ 2 (docs/design.md §6.6): the paths' ends that the rig sees as one point.
 
@@ -369,10 +368,7 @@ def focal_return(
     The rig's foci: the transmits' amplitude width A_W λ/S per lateral axis over the span of sines S =
     `transmit_span` (N_θ Δs per axis), the receive's A_W λ/(2 NA) over the aperture D = `aperture` at the range
     R = z_surface + d, NA = (D/2)/√(R² + D²/4) (A_W λ R/D at small NA); λ at each frequency. ℓ_s(f) = `ls`,
-    absorption ℓ_a = `la`. With `rig` (the rig's own transmits and their beams, `FocalRig`), ν takes the discrete
-    overlap W′ of eq. F2′ (`discrete_focal_overlap`: the ends lit by the beams that reach them, the receive spreading
-    from each end's range, the transmits' grating lobes) instead of (F2); κ keeps (F2)'s W, the share of a path's
-    energy that is point-like."""
+    absorption ℓ_a = `la`."""
     dep = np.asarray(depths, dtype=np.float64)
     h = float(dep[1] - dep[0]) if dep.size > 1 else 1.0
     s_grid = np.asarray(lengths, dtype=np.float64)
@@ -400,18 +396,6 @@ def focal_return(
     q_in = secant_over_sines(span)
     r_tab = np.linspace(z_surface, z_surface + max(float(dn.max(initial=0.0)), 1e-9), 257)
     q_out = np.interp(z_surface + dn, r_tab, secant_over_aperture(ap, r_tab))
-    first, r_app = paths.start[w], z_surface + d_app
-    if rig is not None:  # the window under the aperture (within the first scatterings' square) where F2′ is taken
-        start_half = 0.5 * paths.start_area ** (1.0 / axes)
-        half = np.minimum(0.5 * rig.aperture, start_half)
-        under = np.all(np.abs(0.5 * (first[:, :axes] + paths.end[:, :axes])) <= half[None, :], axis=1)
-        window_area = float(np.prod(2 * half))
-        sel = in_grid & under
-        # W′ at (up to) three frequencies of the band, linear in between (smooth: a few % at the midpoints)
-        anchors = f if f.size <= 3 else f[[0, f.size // 2, f.size - 1]]
-        w_anchor = np.stack(
-            [discrete_focal_overlap(first[sel], paths.end[sel], r_app[sel], 2 * np.pi * fa / c0, rig) for fa in anchors]
-        )
     for m in range(f.size):
         lam, lf = c0 / f[m], float(ls[m])
         k = 2 * np.pi / lam
@@ -424,24 +408,11 @@ def focal_return(
         r = (z_surface + d_app)[:, None]
         a_r = A_W * lam * np.sqrt(r**2 + (ap[None, :] / 2) ** 2) / ap[None, :]  # A_W λ/(2 NA), NA = sin of the edge ray
         ov = focal_overlap(delta, A_W * lam / span, a_r, d_app - d1, d_app - dn, k)
-        weight = nt2 * energy * ov
-        if rig is not None:  # F2′ on the axis: the paths whose midpoint lies under the aperture, per its area
-            weight = np.zeros_like(energy)
-            weight[sel] = nt2 * energy[sel] * _between(f[m], anchors, w_anchor) * paths.start_area / window_area
-        var[m] = np.bincount(cell[in_grid], weights=weight[in_grid], minlength=dep.size) / h
+        var[m] = np.bincount(cell[in_grid], weights=(nt2 * energy * ov)[in_grid], minlength=dep.size) / h
         total = np.bincount(age[in_ages], weights=energy[in_ages], minlength=s_grid.size)
         moved = np.bincount(age[in_ages], weights=(energy * ov / 2)[in_ages], minlength=s_grid.size)
         kept[m] = np.where(total > 0, np.clip(1.0 - moved / np.maximum(total, 1e-300), 0.0, 1.0), 1.0)
     return var, kept
-
-
-def _between(x: float, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
-    """Rows ys (n, N) linearly interpolated at x between the abscissae xs (n,), held beyond them."""
-    if xs.size == 1:
-        return ys[0]
-    j = int(np.clip(np.searchsorted(xs, x), 1, xs.size - 1))
-    t = float(np.clip((x - xs[j - 1]) / (xs[j] - xs[j - 1]), 0.0, 1.0))
-    return (1 - t) * ys[j - 1] + t * ys[j]
 
 
 def far_green(k: float, d: np.ndarray, dim: int) -> np.ndarray:

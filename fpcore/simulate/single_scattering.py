@@ -146,16 +146,6 @@ class SingleScatteringField:
         self._beams: np.ndarray | None = None
         self._plan_lock: threading.Lock | None = None  # made with the plans, shared with them (`prepare`)
 
-    @property
-    def beam_aperture(self) -> tuple[float, float]:
-        """The transmits' beam aperture per lateral axis (`beam`)."""
-        return self._aperture
-
-    @property
-    def beam_wavelength(self) -> float:
-        """The wavelength of the beams' diffraction spread (`beam`)."""
-        return self._lam
-
     def beam(self, i: int) -> np.ndarray:
         """Transmit i's beam w(x − z tan θ) on the grid, (nx, ny, nz) float32: flat inside its half-width at each
         depth, cosine edges, its amplitude conserving the beam's power as it spreads (`beam_half_width`)."""
