@@ -209,7 +209,7 @@ def test_focal_return_of_one_path_is_twice_its_intensity_at_its_apparent_depth()
     kept = P.focal_return(_one_path(0.0), *args)[1][0]
     assert kept[int(np.argmin(np.abs(ages - (d1 + dn + length))))] == pytest.approx(0.0, abs=2e-3)
     assert np.sum(kept < 1) == 1
-    far_var, far_kept = P.focal_return(_one_path(80e-3), *args)
+    far_var, far_kept, _ = P.focal_return(_one_path(80e-3), *args)
     assert far_var.max() < 1e-8 * expected and np.all(far_kept > 1 - 1e-8)
 
 
@@ -379,3 +379,24 @@ def test_the_discrete_focal_overlap_needs_a_grid_of_transmits() -> None:
     assert P.FocalRig.from_grid(grid[:-1], np.array([5e-3, 5e-3]), 3, None, 0.68e-3) is None
     line = np.stack([s1, np.zeros(3)], axis=1)
     assert P.FocalRig.from_grid(line, np.array([5e-3]), 2, None, 0.68e-3) is not None
+
+
+def test_with_the_rigs_foci_the_focal_return_is_lit_at_its_ends_depth() -> None:
+    """`focal_return` with a `FocalRig` (docs/design.md §6.6, F2′): a path's cell is lit at the mean depth of its
+    ends (not at its apparent depth), its variance takes W′ — 2 × its intensity for a point-like path in focus, as (F1)
+    with (F2) — and no other cell has any."""
+    path = P.Paths(3, np.array([[0.0, 0.0, 7e-3]]), np.array([0]), np.array([[0.0, 0.0, 7e-3]]),
+                   np.array([2], dtype=np.int32), np.array([1e-6]), 1.8e-3, np.array([2e-9]), 1e-6)  # fmt: skip
+    depths = np.arange(0, 40) * 0.25e-3
+    s1 = np.linspace(-0.2, 0.2, 5)
+    sy, sx = np.meshgrid(s1, s1, indexing="ij")
+    rig = P.FocalRig.from_grid(np.stack([sx.ravel(), sy.ravel()], 1), np.array([1e-3, 1e-3]), 3, None, 0.68e-3)
+    args = (depths, np.arange(0, 40) * 0.5e-3, np.array([2.2e6]), np.array([1.8e-3]), np.inf, 1500.0)
+    var_f2, _, none = P.focal_return(path, *args, np.array([0.5, 0.5]), np.array([1e-3, 1e-3]), 5e-3)
+    var, _, light = P.focal_return(path, *args, np.array([0.5, 0.5]), np.array([1e-3, 1e-3]), 5e-3, rig)
+    assert none is None and light is not None
+    j = int(np.argmax(var[0]))
+    assert depths[j] == pytest.approx(2e-3) and light[j] == pytest.approx(2e-3)
+    assert np.count_nonzero(var[0]) == 1
+    window = (2 * 0.5e-3) ** 2  # the aperture's window (1 mm) inside the first scatterings' square (1 mm)
+    assert var[0, j] == pytest.approx(var_f2[0, j] * 1e-6 / window, rel=1e-3)

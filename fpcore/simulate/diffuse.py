@@ -57,7 +57,7 @@ from ..acquisition import element_grid_axes
 from ..geometry import cosines
 from .confocal_notch import ConfocalNotch
 from .memory import MemoryKernel, block_energy_gain, block_kernel, effective_spread, grid_kernel, lattice_steps
-from .paths import draw_paths, focal_return
+from .paths import FocalRig, draw_paths, focal_return
 from .reciprocity import ReciprocalBlock
 from .single_scattering import SingleScatteringField
 from .waves import Band, TimeWindow
@@ -349,8 +349,10 @@ class DiffuseBackground:
                 ss_rng,
             )
             if layer.focal_return:
-                var, g1, self._fr_kept = focal_return_tables(layer, self.single, el, s, self.centres, c0, dim, window)
-                self.single.add_focal_return(var, g1)
+                var, g1, self._fr_kept, light = focal_return_tables(
+                    layer, self.single, el, s, self.centres, c0, dim, window
+                )
+                self.single.add_focal_return(var, g1, light)
         self.envelopes, self.g1 = self._envelopes(self.s_out, s, cone=layer.cbs)
         self.envelope = self.envelopes[len(self.envelopes) // 2]  # the band-centre one (tests, diagnostics)
         # Reciprocity and coherent backscattering between the transmits' beams (`reciprocity`): the main
@@ -635,7 +637,7 @@ def focal_return_tables(
     c0: float,
     dim: int,
     window: TimeWindow,
-) -> tuple[np.ndarray, np.ndarray | None, tuple[np.ndarray, np.ndarray]]:
+) -> tuple[np.ndarray, np.ndarray | None, tuple[np.ndarray, np.ndarray], np.ndarray | None]:
     """The focal return on the beads' grid (docs/design.md §6.6): its variance (n_sub, nz), g₁ per depth (None if
     frozen; a path of length 2d, DWS) and the share of the energy the Gaussian field keeps by path length (s grid,
     (n_sub, N_s)). Walks in the layer (`paths.draw_paths`, first scatterings weighted by the incident extinction)
@@ -670,7 +672,9 @@ def focal_return_tables(
         start_decay=lext_c,
     )
     s_grid = np.linspace(0.0, s_end, FOCAL_LENGTH_BINS)
-    var, kept = focal_return(
+    # The rig's own transmits and beams (eq. F2′): the focal return lit as its ends are, where the sines form a grid.
+    rig = FocalRig.from_grid(si, np.array(aperture), dim, np.array(single.beam_aperture), single.beam_wavelength)
+    var, kept, light = focal_return(
         walks,
         single.depths,
         s_grid,
@@ -681,11 +685,12 @@ def focal_return_tables(
         np.array(span),
         np.array(aperture),
         layer.z_surface,
+        rig,
     )
     g1 = None
     if layer.frame_displacement > 0:
         g1 = layer.correlation_per_frame(2 * single.depths / v, c0, f_c).astype(np.float32)
-    return var, g1, (s_grid, kept)
+    return var, g1, (s_grid, kept), light
 
 
 def _beads_stream(rng: np.random.Generator) -> np.random.Generator:

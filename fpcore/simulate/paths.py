@@ -294,7 +294,13 @@ def _overlap_integral(
 
 
 def discrete_focal_overlap(
-    first: np.ndarray, last: np.ndarray, r_app: np.ndarray, k: float, rig: FocalRig, chunk: int = 20000
+    first: np.ndarray,
+    last: np.ndarray,
+    r_app: np.ndarray,
+    k: float,
+    rig: FocalRig,
+    light_range: np.ndarray | None = None,
+    chunk: int = 20000,
 ) -> np.ndarray:
     """W (N,) of paths with ends `first`, `last` (N, 3; z the range from the array) seen at the apparent range
     r_app (N,), relative to a point on the array's axis in focus there (docs/design.md §6.6, eq. F2′):
@@ -306,13 +312,15 @@ def discrete_focal_overlap(
     end sees transmits a deep focus no longer gets), and the receive R(x; r) the aperture's Fresnel focus at r_app of
     the spherical wave from r, its amplitude spreading from the end's own range — separable along the lateral axes,
     each integral in closed form (a Gaussian apodization of the receive, the transmits' discrete sum kept: their
-    grating lobes λ/Δs apart). 2 where the ends coincide in focus, as (F2)."""
+    grating lobes λ/Δs apart). 2 where the ends coincide in focus, as (F2). With `light_range` (N,), the point P is
+    lit by the beams as at that range (the focal return lit as its ends are, `focal_return`)."""
     p1, pn = np.asarray(first, dtype=np.float64), np.asarray(last, dtype=np.float64)
     ra = np.asarray(r_app, dtype=np.float64)
+    rl = ra if light_range is None else np.asarray(light_range, dtype=np.float64)
     out = np.empty(ra.size)
     for c0 in range(0, ra.size, chunk):
         sl = slice(c0, min(c0 + chunk, ra.size))
-        a, b, r = p1[sl], pn[sl], ra[sl]
+        a, b, r, r_light = p1[sl], pn[sl], ra[sl], rl[sl]
         num_f = np.ones(r.size)
         num_r = np.ones(r.size)
         den = np.ones(r.size)
@@ -326,7 +334,7 @@ def discrete_focal_overlap(
                 return _beam_weights(rig, j, end[:, j], end[:, 2]) * np.exp(1j * k * phase)
 
             w_1, w_n = lit(a), lit(b)
-            w_p = _beam_weights(rig, j, np.zeros(r.size), r).astype(np.complex128)
+            w_p = _beam_weights(rig, j, np.zeros(r.size), r_light).astype(np.complex128)
             rx_n = _receive(b[:, j], b[:, 2], r, k, sigma)
             rx_1 = _receive(a[:, j], a[:, 2], r, k, sigma)
             rx_p = _receive(np.zeros(r.size), r, r, k, sigma)
@@ -349,7 +357,8 @@ def focal_return(
     transmit_span: np.ndarray,
     aperture: np.ndarray,
     z_surface: float,
-) -> tuple[np.ndarray, np.ndarray]:
+    rig: FocalRig | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """The focal return of the orders ≥ 2 (docs/design.md §6.6): the paths' ends that the rig sees as one point.
 
     Returns ν (N_f, N_z), the reflectivity variance per unit volume (that of the beads' single scattering is
@@ -368,7 +377,12 @@ def focal_return(
     The rig's foci: the transmits' amplitude width A_W λ/S per lateral axis over the span of sines S =
     `transmit_span` (N_θ Δs per axis), the receive's A_W λ/(2 NA) over the aperture D = `aperture` at the range
     R = z_surface + d, NA = (D/2)/√(R² + D²/4) (A_W λ R/D at small NA); λ at each frequency. ℓ_s(f) = `ls`,
-    absorption ℓ_a = `la`."""
+    absorption ℓ_a = `la`.
+
+    With `rig` (the rig's own transmits and beams, `FocalRig`) the focal return is lit as its ends are: the third
+    value is the depth below the surface (N_z,) at which each apparent depth's cell is lit — the energy-weighted mean
+    of its paths' ends' depths — and ν takes W′ (eq. F2′, `discrete_focal_overlap`, its point lit there) over the
+    paths whose midpoint lies under the aperture, per unit area of that window; κ keeps (F2)'s W. None without rig."""
     dep = np.asarray(depths, dtype=np.float64)
     h = float(dep[1] - dep[0]) if dep.size > 1 else 1.0
     s_grid = np.asarray(lengths, dtype=np.float64)
@@ -377,7 +391,7 @@ def focal_return(
     ls = np.broadcast_to(np.asarray(ls, dtype=np.float64), f.shape)
     var, kept = np.zeros((f.size, dep.size)), np.ones((f.size, s_grid.size))
     if paths.n_paths == 0:
-        return var, kept
+        return var, kept, (dep.copy() if rig is not None else None)
     axes = 2 if paths.dim == 3 else 1
     w = paths.walk
     d1 = paths.start[w, 2] - z_surface
@@ -396,6 +410,29 @@ def focal_return(
     q_in = secant_over_sines(span)
     r_tab = np.linspace(z_surface, z_surface + max(float(dn.max(initial=0.0)), 1e-9), 257)
     q_out = np.interp(z_surface + dn, r_tab, secant_over_aperture(ap, r_tab))
+    light = None
+    if rig is not None:  # the window under the aperture (within the first scatterings' square) where F2′ is taken
+        first, r_app = paths.start[w], z_surface + d_app
+        half = np.minimum(0.5 * rig.aperture, 0.5 * paths.start_area ** (1.0 / axes))
+        sel = in_grid & np.all(np.abs(0.5 * (first[:, :axes] + paths.end[:, :axes])) <= half[None, :], axis=1)
+        window = float(np.prod(2 * half))
+        lf = float(ls[ls.size // 2])
+        e_c = per_area * np.exp(
+            (paths.order - 1) * np.log(paths.ls_ref / lf)
+            - paths.length * (1.0 / lf - 1.0 / paths.ls_ref + 1.0 / la)
+            - (d1 * q_in + dn * q_out) / (1.0 / (1.0 / lf + 1.0 / la))
+        )
+        mass = np.bincount(cell[sel], weights=e_c[sel], minlength=dep.size)
+        mean_end = np.bincount(cell[sel], weights=(e_c * 0.5 * (d1 + dn))[sel], minlength=dep.size)
+        light = np.where(mass > 0, mean_end / np.maximum(mass, 1e-300), dep)
+        anchors = f if f.size <= 3 else f[[0, f.size // 2, f.size - 1]]
+        lit = z_surface + light[cell[sel]]
+        w_anchor = np.stack(
+            [
+                discrete_focal_overlap(first[sel], paths.end[sel], r_app[sel], 2 * np.pi * fa / c0, rig, lit)
+                for fa in anchors
+            ]
+        )
     for m in range(f.size):
         lam, lf = c0 / f[m], float(ls[m])
         k = 2 * np.pi / lam
@@ -408,11 +445,24 @@ def focal_return(
         r = (z_surface + d_app)[:, None]
         a_r = A_W * lam * np.sqrt(r**2 + (ap[None, :] / 2) ** 2) / ap[None, :]  # A_W λ/(2 NA), NA = sin of the edge ray
         ov = focal_overlap(delta, A_W * lam / span, a_r, d_app - d1, d_app - dn, k)
-        var[m] = np.bincount(cell[in_grid], weights=(nt2 * energy * ov)[in_grid], minlength=dep.size) / h
+        weight = nt2 * energy * ov
+        if rig is not None:  # F2′: the paths under the aperture, per unit area of that window
+            weight = np.zeros_like(energy)
+            weight[sel] = nt2 * energy[sel] * _between(f[m], anchors, w_anchor) * paths.start_area / window
+        var[m] = np.bincount(cell[in_grid], weights=weight[in_grid], minlength=dep.size) / h
         total = np.bincount(age[in_ages], weights=energy[in_ages], minlength=s_grid.size)
         moved = np.bincount(age[in_ages], weights=(energy * ov / 2)[in_ages], minlength=s_grid.size)
         kept[m] = np.where(total > 0, np.clip(1.0 - moved / np.maximum(total, 1e-300), 0.0, 1.0), 1.0)
-    return var, kept
+    return var, kept, light
+
+
+def _between(x: float, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+    """Rows ys (n, N) linearly interpolated at x between the abscissae xs (n,), held beyond them."""
+    if xs.size == 1:
+        return ys[0]
+    j = int(np.clip(np.searchsorted(xs, x), 1, xs.size - 1))
+    t = float(np.clip((x - xs[j - 1]) / (xs[j] - xs[j - 1]), 0.0, 1.0))
+    return (1 - t) * ys[j - 1] + t * ys[j]
 
 
 def far_green(k: float, d: np.ndarray, dim: int) -> np.ndarray:

@@ -136,6 +136,8 @@ class SingleScatteringField:
         # The focal return of the orders ≥ 2 (`add_focal_return`): its own reflectivity on this grid, summed with the
         # beads' before the NUFFT (one transform for both), with its own depth profile and frame-to-frame g₁.
         self._fr_var: np.ndarray | None = None
+        self._fr_light: np.ndarray | None = None
+        self._fr_beams: np.ndarray | None = None
         self._fr_g1: np.ndarray | None = None
         self.fr_state: np.ndarray | None = None
         # False leaves the focal return alone on the grid, the beads' reflectivity zero (a diagnostic: the focal
@@ -146,10 +148,21 @@ class SingleScatteringField:
         self._beams: np.ndarray | None = None
         self._plan_lock: threading.Lock | None = None  # made with the plans, shared with them (`prepare`)
 
-    def beam(self, i: int) -> np.ndarray:
+    @property
+    def beam_aperture(self) -> tuple[float, float]:
+        """The transmits' beam aperture per lateral axis (`beam`)."""
+        return self._aperture
+
+    @property
+    def beam_wavelength(self) -> float:
+        """The wavelength of the beams' diffraction spread (`beam`)."""
+        return self._lam
+
+    def beam(self, i: int, light: np.ndarray | None = None) -> np.ndarray:
         """Transmit i's beam w(x − z tan θ) on the grid, (nx, ny, nz) float32: flat inside its half-width at each
-        depth, cosine edges, its amplitude conserving the beam's power as it spreads (`beam_half_width`)."""
-        z = self.layer.z_surface + self.depths
+        depth, cosine edges, its amplitude conserving the beam's power as it spreads (`beam_half_width`); with
+        `light` (nz,), each depth lit as at that depth below the surface instead."""
+        z = self.layer.z_surface + (self.depths if light is None else light)
         ap, lam = self._aperture, self._lam
         hx = beam_half_width(ap[0], z, lam)[None, :]
         bx = _edge(self._xs[:, None] - z[None, :] * self._tan[i, 0], hx, 0.15 * hx) * beam_gain(ap[0], z, lam)
@@ -168,16 +181,19 @@ class SingleScatteringField:
         out.imag = self.rng.standard_normal(shape, dtype=np.float32) * sig
         return out
 
-    def add_focal_return(self, variance: np.ndarray, g1: np.ndarray | None) -> None:
+    def add_focal_return(self, variance: np.ndarray, g1: np.ndarray | None, light: np.ndarray | None = None) -> None:
         """A second reflectivity on this grid: the focal return of the orders ≥ 2 (`paths.focal_return_variance`),
         variance (n_sub, nz) per unit volume at each sub-band centre and depth (extinction included), and its g₁
-        between frames per depth (nz,), None when frozen. Set before the first spectrum."""
+        between frames per depth (nz,), None when frozen; `light` (nz,), the depth below the surface at which each
+        depth's focal return is lit by the transmits' beams (its paths' ends, `paths.focal_return`), or None: its own.
+        Set before the first spectrum."""
         v = np.asarray(variance, dtype=np.float64)
         if v.shape != (self.centres.size, self.nz):
             raise ValueError(f"variance: expected shape {(self.centres.size, self.nz)}, got {v.shape}")
         if self._plans is not None:
             raise ValueError("variance: expected before the first spectrum (the sub-bands' profiles are built then)")
         self._fr_var = v
+        self._fr_light = None if light is None else np.asarray(light, dtype=np.float64)
         self._fr_g1 = None if g1 is None else np.asarray(g1, dtype=np.float32)
 
     def advance(self) -> None:
@@ -256,6 +272,8 @@ class SingleScatteringField:
                     self._plans.append((idx, depth_w, tx_w, fr_w, plans, post))
         if self._beams is None:
             self._beams = np.stack([self.beam(i) for i in range(self.n_i)])
+        if self._fr_light is not None and self._fr_beams is None:
+            self._fr_beams = np.stack([self.beam(i, self._fr_light) for i in range(self.n_i)])
 
     def spectrum(self) -> np.ndarray:
         """A(o, θ, f) (N_o, N_θ, N_f) complex64 for the current grid (module doc)."""
@@ -273,9 +291,13 @@ class SingleScatteringField:
                 focal = self.fr_state * fr_w[None, None, :]
             for i, plan in enumerate(plans):
                 grid = base * tx_w[i][None, None, :]
-                if focal is not None:
-                    grid += focal
-                grid *= self._beams[i]
+                if focal is not None and self._fr_beams is not None:  # lit as its ends are
+                    grid *= self._beams[i]
+                    grid += focal * self._fr_beams[i]
+                else:
+                    if focal is not None:
+                        grid += focal
+                    grid *= self._beams[i]
                 with self._plan_lock:
                     vals = plan.execute(grid if self.dim == 3 else np.ascontiguousarray(grid[:, 0, :]))
                 out[:, i, idx] += vals.reshape(self.n_o, idx.size) * post[:, i]
