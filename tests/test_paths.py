@@ -300,6 +300,16 @@ def test_without_the_beads_the_grid_carries_the_focal_return_alone() -> None:
     assert np.abs(alone).max() > 0.05 * np.abs(whole).max()
     np.testing.assert_allclose(beads + alone, whole, rtol=0, atol=1e-4 * np.abs(whole).max())
     assert not np.any(single(False, False))
+    # the depths at which the focal return is lit: one per grid depth
+    lay = ScatteringLayer(z_surface=10e-3, ls=1.8e-3, la=8e-3, single_scattering="field", focal_return=True)
+    bg = DiffuseBackground(
+        lay, probe.positions, seq.sines, win, Band(1.8e6, 2.6e6), 1500.0, 2, 0.5 * probe.aperture[0],
+        np.random.default_rng(5),
+    )  # fmt: skip
+    assert bg.single is not None and bg.single._fr_light is not None
+    assert bg.single._fr_light.shape == (bg.single.nz,)
+    with pytest.raises(ValueError, match="light: expected a depth per grid depth"):
+        bg.single.add_focal_return(bg.single._fr_var, None, np.zeros(3))
 
 
 def _exact_confocal_ratio(

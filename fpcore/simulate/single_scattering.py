@@ -192,8 +192,11 @@ class SingleScatteringField:
             raise ValueError(f"variance: expected shape {(self.centres.size, self.nz)}, got {v.shape}")
         if self._plans is not None:
             raise ValueError("variance: expected before the first spectrum (the sub-bands' profiles are built then)")
+        lit = None if light is None else np.asarray(light, dtype=np.float64)
+        if lit is not None and lit.shape != (self.nz,):
+            raise ValueError(f"light: expected a depth per grid depth, shape {(self.nz,)}, got {lit.shape}")
         self._fr_var = v
-        self._fr_light = None if light is None else np.asarray(light, dtype=np.float64)
+        self._fr_light = lit
         self._fr_g1 = None if g1 is None else np.asarray(g1, dtype=np.float32)
 
     def advance(self) -> None:
