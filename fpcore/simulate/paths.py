@@ -43,7 +43,7 @@ import numpy as np
 from ..geometry import secant_over_aperture, secant_over_sines
 from ..kernel import default_threads
 from ..kernel_presum_loops import _jit, nb, pool, split
-from .single_scattering import beam_gain, beam_half_width
+from .single_scattering import BEAM_SOFT, _edge, beam_gain, beam_half_width
 
 __all__ = [
     "Paths",
@@ -242,10 +242,6 @@ class FocalRig:
         return FocalRig(per_axis, ap, beam, float(wavelength))
 
 
-#: The beams' cosine edges, a fraction of the half-width either side of it (`SingleScatteringField.beam`).
-BEAM_SOFT = 0.15
-
-
 def _beam_weights(rig: FocalRig, axis: int, x: np.ndarray, z: np.ndarray) -> np.ndarray:
     """Each transmit's beam amplitude along one axis at the points (x, range z): (N, N_j); ones if unbounded."""
     s = rig.sines[axis]
@@ -253,9 +249,8 @@ def _beam_weights(rig: FocalRig, axis: int, x: np.ndarray, z: np.ndarray) -> np.
         return np.ones((x.size, s.size))
     ap, lam = float(rig.beam_aperture[axis]), rig.beam_wavelength
     hw = beam_half_width(ap, z, lam)[:, None]
-    off = np.abs(x[:, None] - z[:, None] * (s / np.sqrt(1.0 - s**2))[None, :])
-    t = np.clip((off - (1 - BEAM_SOFT) * hw) / (2 * BEAM_SOFT * hw), 0.0, 1.0)
-    return (0.5 + 0.5 * np.cos(np.pi * t)) * beam_gain(ap, z, lam)[:, None]
+    off = x[:, None] - z[:, None] * (s / np.sqrt(1.0 - s**2))[None, :]  # tan θ per axis (paraxial in the other)
+    return _edge(off, hw, BEAM_SOFT * hw) * beam_gain(ap, z, lam)[:, None]
 
 
 def _receive(x_end: np.ndarray, r_end: np.ndarray, r_focus: np.ndarray, k: float, sigma: float) -> tuple:

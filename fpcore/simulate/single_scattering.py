@@ -165,10 +165,10 @@ class SingleScatteringField:
         z = self.layer.z_surface + (self.depths if light is None else light)
         ap, lam = self._aperture, self._lam
         hx = beam_half_width(ap[0], z, lam)[None, :]
-        bx = _edge(self._xs[:, None] - z[None, :] * self._tan[i, 0], hx, 0.15 * hx) * beam_gain(ap[0], z, lam)
+        bx = _edge(self._xs[:, None] - z[None, :] * self._tan[i, 0], hx, BEAM_SOFT * hx) * beam_gain(ap[0], z, lam)
         if self.dim == 3:
             hy = beam_half_width(ap[1], z, lam)[None, :]
-            by = _edge(self._ys[:, None] - z[None, :] * self._tan[i, 1], hy, 0.15 * hy) * beam_gain(ap[1], z, lam)
+            by = _edge(self._ys[:, None] - z[None, :] * self._tan[i, 1], hy, BEAM_SOFT * hy) * beam_gain(ap[1], z, lam)
         else:
             by = np.ones((1, z.size))
         return (bx[:, None, :] * by[None, :, :]).astype(np.float32)
@@ -347,6 +347,10 @@ def output_grid(
     keep = mag < s_end
     edge = np.clip((mag[keep] - s_need) / (s_end - s_need), 0.0, 1.0)
     return ds, axes, keep, full[keep], 0.5 + 0.5 * np.cos(np.pi * edge)
+
+
+#: The beams' cosine edges, this fraction of the half-width either side of it (`SingleScatteringField.beam`).
+BEAM_SOFT = 0.15
 
 
 def beam_half_width(aperture: float, z: np.ndarray | float, lam: float) -> np.ndarray:
