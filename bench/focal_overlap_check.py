@@ -156,7 +156,7 @@ def check(rig: Rig, first: np.ndarray, last: np.ndarray, length: float, focal: F
     point = one_path(mid, mid, 0.0)
     e_pt = patch_energy(rig, path_spectra(point, rig.freqs, rig.c0, big, rays, rig.transmits, first_order=True), r_app)
     ks = 2 * np.pi * rig.freqs[::FREQ_STRIDE] / rig.c0
-    span = np.array([np.ptp(u) * u.size / (u.size - 1) for u in focal.sines])
+    span = focal.span
     a_r = A_W * (2 * np.pi / ks) * np.sqrt(r_app**2 + rig.aperture**2 / 4) / rig.aperture
     dz1, dzn = np.array([r_app - first[2]]), np.array([r_app - last[2]])
     delta = (last[:2] - first[:2])[None]
@@ -195,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
     w = walks.walk
     d1, dn = walks.start[w, 2] - rig.z_surface, walks.end[:, 2] - rig.z_surface
     d_app = 0.5 * (d1 + dn + walks.length)
-    span = np.array([np.ptp(u) * u.size / (u.size - 1) for u in focal.sines])
+    span = focal.span
     energy = walks.start_weight[w] * np.exp(-walks.length / rig.la - (secant_over_sines(span) * d1 + dn) / rig.lext)
     mid = 0.5 * (walks.start[w, :2] + walks.end[:, :2])
     rng = np.random.default_rng(1)

@@ -226,6 +226,11 @@ class FocalRig:
     beam_aperture: np.ndarray | None = None  # (n_axes,)
     beam_wavelength: float = 0.0
 
+    @property
+    def span(self) -> np.ndarray:
+        """The span of sines N_j Δs per lateral axis (the transmit focus's aperture in (F2))."""
+        return np.array([float(np.ptp(u)) * u.size / max(u.size - 1, 1) for u in self.sines])
+
     @staticmethod
     def from_grid(
         sines: np.ndarray, aperture: np.ndarray, dim: int, beam_aperture: np.ndarray | None, wavelength: float
@@ -269,22 +274,29 @@ def _receive(x_end: np.ndarray, r_end: np.ndarray, r_focus: np.ndarray, k: float
     return a, b, c
 
 
+def _pair_differences(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct differences s − s' over the pairs of transmits (N_Δ,) and the (N_s², N_Δ) 0/1 matrix that sums
+    each pair's term into its difference (`_overlap_integral`)."""
+    scale = max(float(np.ptp(s)), 1e-12)
+    uniq, inv = np.unique(np.round((s[:, None] - s[None, :]) / scale, 9), return_inverse=True)
+    gather = np.zeros((inv.size, uniq.size))
+    gather[np.arange(inv.size), inv.ravel()] = 1.0
+    return uniq * scale, gather
+
+
 def _overlap_integral(
-    w_f: np.ndarray, rx_f: tuple, w_g: np.ndarray, rx_g: tuple, k: float, s: np.ndarray
+    w_f: np.ndarray, rx_f: tuple, w_g: np.ndarray, rx_g: tuple, k: float, pairs: tuple[np.ndarray, np.ndarray]
 ) -> np.ndarray:
     """∫ F conj(G) dx over the focus position, F = Σ_s w_f[s] e^{iksx} × receive_f(x) (and G), in closed form: a
-    Gaussian integral per pair of transmits, whose exponent depends on the pair through s − s' only."""
+    Gaussian integral per pair of transmits, whose exponent depends on the pair through s − s' only (`pairs`:
+    `_pair_differences`)."""
+    d, gather = pairs
     a = rx_f[0] + np.conj(rx_g[0])
     b = rx_f[1] + np.conj(rx_g[1])
     c = rx_f[2] + np.conj(rx_g[2])
-    diff = s[:, None] - s[None, :]
-    uniq, inv = np.unique(np.round(diff / max(float(np.ptp(s)), 1e-12), 9), return_inverse=True)
-    d = uniq * max(float(np.ptp(s)), 1e-12)
     q = b[:, None] + 1j * k * d[None, :]
     e = np.exp(q**2 / (4 * a[:, None]) + c[:, None])  # (N, N_Δ)
     pair = (w_f[:, :, None] * np.conj(w_g)[:, None, :]).reshape(w_f.shape[0], -1)
-    gather = np.zeros((inv.size, d.size))
-    gather[np.arange(inv.size), inv.ravel()] = 1.0
     return np.sqrt(np.pi / a) * np.sum((pair @ gather) * e, axis=1)
 
 
@@ -313,6 +325,7 @@ def discrete_focal_overlap(
     ra = np.asarray(r_app, dtype=np.float64)
     rl = ra if light_range is None else np.asarray(light_range, dtype=np.float64)
     out = np.empty(ra.size)
+    pairs = [_pair_differences(s) for s in rig.sines]
     for c0 in range(0, ra.size, chunk):
         sl = slice(c0, min(c0 + chunk, ra.size))
         a, b, r, r_light = p1[sl], pn[sl], ra[sl], rl[sl]
@@ -333,10 +346,10 @@ def discrete_focal_overlap(
             rx_n = _receive(b[:, j], b[:, 2], r, k, sigma)
             rx_1 = _receive(a[:, j], a[:, 2], r, k, sigma)
             rx_p = _receive(np.zeros(r.size), r, r, k, sigma)
-            num_f *= _overlap_integral(w_1, rx_n, w_1, rx_n, k, s).real
-            num_r *= _overlap_integral(w_n, rx_1, w_n, rx_1, k, s).real
-            cross *= _overlap_integral(w_1, rx_n, w_n, rx_1, k, s)
-            den *= _overlap_integral(w_p, rx_p, w_p, rx_p, k, s).real
+            num_f *= _overlap_integral(w_1, rx_n, w_1, rx_n, k, pairs[j]).real
+            num_r *= _overlap_integral(w_n, rx_1, w_n, rx_1, k, pairs[j]).real
+            cross *= _overlap_integral(w_1, rx_n, w_n, rx_1, k, pairs[j])
+            den *= _overlap_integral(w_p, rx_p, w_p, rx_p, k, pairs[j]).real
         out[sl] = (num_f + num_r + 2 * cross.real) / (2 * np.maximum(den, 1e-300))
     return out
 
@@ -405,43 +418,43 @@ def focal_return(
     q_in = secant_over_sines(span)
     r_tab = np.linspace(z_surface, z_surface + max(float(dn.max(initial=0.0)), 1e-9), 257)
     q_out = np.interp(z_surface + dn, r_tab, secant_over_aperture(ap, r_tab))
+
+    def path_energy(lf: float) -> np.ndarray:
+        """E of (F3) per path at ℓ_s(f) = lf: the walk's weight re-weighted to lf and ℓ_a, both legs' extinction."""
+        log_w = (paths.order - 1) * np.log(paths.ls_ref / lf) - paths.length * (
+            1.0 / lf - 1.0 / paths.ls_ref + 1.0 / la
+        )
+        return per_area * np.exp(log_w - (d1 * q_in + dn * q_out) * (1.0 / lf + 1.0 / la))
+
     light = None
     if rig is not None:  # the window under the aperture (within the first scatterings' square) where F2′ is taken
         first, r_app = paths.start[w], z_surface + d_app
         half = np.minimum(0.5 * rig.aperture, 0.5 * paths.start_area ** (1.0 / axes))
         sel = in_grid & np.all(np.abs(0.5 * (first[:, :axes] + paths.end[:, :axes])) <= half[None, :], axis=1)
         window = float(np.prod(2 * half))
-        lf = float(ls[ls.size // 2])
-        e_c = per_area * np.exp(
-            (paths.order - 1) * np.log(paths.ls_ref / lf)
-            - paths.length * (1.0 / lf - 1.0 / paths.ls_ref + 1.0 / la)
-            - (d1 * q_in + dn * q_out) / (1.0 / (1.0 / lf + 1.0 / la))
-        )
+        e_c = path_energy(float(ls[ls.size // 2]))  # the band centre's weights for the lighting depth
         mass = np.bincount(cell[sel], weights=e_c[sel], minlength=dep.size)
         mean_end = np.bincount(cell[sel], weights=(e_c * 0.5 * (d1 + dn))[sel], minlength=dep.size)
         light = np.where(mass > 0, mean_end / np.maximum(mass, 1e-300), dep)
         anchors = f if f.size <= 3 else f[[0, f.size // 2, f.size - 1]]
-        lit = z_surface + light[cell[sel]]
+        lit_range = z_surface + light[cell[sel]]
         w_anchor = np.stack(
             [
-                discrete_focal_overlap(first[sel], paths.end[sel], r_app[sel], 2 * np.pi * fa / c0, rig, lit)
+                discrete_focal_overlap(first[sel], paths.end[sel], r_app[sel], 2 * np.pi * fa / c0, rig, lit_range)
                 for fa in anchors
             ]
         )
     for m in range(f.size):
         lam, lf = c0 / f[m], float(ls[m])
         k = 2 * np.pi / lam
-        lext = 1.0 / (1.0 / lf + 1.0 / la)
         nt2 = 4 * np.pi / lf if paths.dim == 3 else 4 * k / lf
-        log_w = (paths.order - 1) * np.log(paths.ls_ref / lf) - paths.length * (
-            1.0 / lf - 1.0 / paths.ls_ref + 1.0 / la
-        )
-        energy = per_area * np.exp(log_w - (d1 * q_in + dn * q_out) / lext)
+        energy = path_energy(lf)
         r = (z_surface + d_app)[:, None]
         a_r = A_W * lam * np.sqrt(r**2 + (ap[None, :] / 2) ** 2) / ap[None, :]  # A_W λ/(2 NA), NA = sin of the edge ray
         ov = focal_overlap(delta, A_W * lam / span, a_r, d_app - d1, d_app - dn, k)
-        weight = nt2 * energy * ov
-        if rig is not None:  # F2′: the paths under the aperture, per unit area of that window
+        if rig is None:
+            weight = nt2 * energy * ov
+        else:  # F2′: the paths under the aperture, per unit area of that window
             weight = np.zeros_like(energy)
             weight[sel] = nt2 * energy[sel] * _between(f[m], anchors, w_anchor) * paths.start_area / window
         var[m] = np.bincount(cell[in_grid], weights=weight[in_grid], minlength=dep.size) / h

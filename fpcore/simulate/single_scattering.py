@@ -286,6 +286,7 @@ class SingleScatteringField:
         self.prepare()
         assert self._plans is not None and self._beams is not None and self._plan_lock is not None
         out = np.zeros((self.n_o, self.n_i, self.freqs.size), dtype=np.complex64)
+        fr_beams = self._beams if self._fr_beams is None else self._fr_beams
         for idx, depth_w, tx_w, fr_w, plans, post in self._plans:
             base = self.state * depth_w[None, None, :]
             focal = None
@@ -294,13 +295,9 @@ class SingleScatteringField:
                 focal = self.fr_state * fr_w[None, None, :]
             for i, plan in enumerate(plans):
                 grid = base * tx_w[i][None, None, :]
-                if focal is not None and self._fr_beams is not None:  # lit as its ends are
-                    grid *= self._beams[i]
-                    grid += focal * self._fr_beams[i]
-                else:
-                    if focal is not None:
-                        grid += focal
-                    grid *= self._beams[i]
+                grid *= self._beams[i]
+                if focal is not None:  # lit as its ends are (`add_focal_return`'s light), else as the beads
+                    grid += focal * fr_beams[i]
                 with self._plan_lock:
                     vals = plan.execute(grid if self.dim == 3 else np.ascontiguousarray(grid[:, 0, :]))
                 out[:, i, idx] += vals.reshape(self.n_o, idx.size) * post[:, i]
