@@ -3,6 +3,7 @@
     .venv/bin/python bench/focal_overlap_check.py                     # the quick sinking-sphere rig, 30 paths a bin
     .venv/bin/python bench/focal_overlap_check.py --rig fl3d          # the 3-D Foldy–Lax deep rig (4.1 mm array)
     .venv/bin/python bench/focal_overlap_check.py --per-bin 60 --out out/bench/focal_overlap_headline.npz
+    .venv/bin/python bench/focal_overlap_check.py --rig fl3d --bins 10 12 --per-bin 20 --patch 14   # late, wide
 
 For paths drawn in the rig's medium (`paths.draw_paths`, first scatterings weighted by the incident extinction),
 sampled by their energy in bins of apparent depth (d₁ + d_n + L)/2 of 1 ℓ_s, their midpoints within ±2 mm of the
@@ -45,7 +46,8 @@ from fpcore.simulate.paths import (  # noqa: E402
     path_spectra,
 )
 
-#: The confocal patch (half-width, points per side) and the frequencies' stride of the direct sum.
+#: The confocal patch (half-width, points per side; --patch widens it at the same spacing) and the frequencies'
+#: stride of the direct sum.
 PATCH, PATCH_POINTS, FREQ_STRIDE = 6e-3, 25, 3
 #: The paths' midpoints are taken within this of the axis, where the patch holds their whole return.
 MID_WINDOW = 2e-3
@@ -129,9 +131,10 @@ def one_path(first: np.ndarray, last: np.ndarray, length: float) -> Paths:
                  np.array([1.0]), 1.0)  # fmt: skip
 
 
-def patch_energy(rig: Rig, v: np.ndarray, r_app: float) -> np.ndarray:
-    """Σ over the patch of |B_f|² at the range r_app, per frequency of the stride (weights² applied)."""
-    x = np.linspace(-PATCH, PATCH, PATCH_POINTS)
+def patch_energy(rig: Rig, v: np.ndarray, r_app: float, patch: float = PATCH) -> np.ndarray:
+    """Σ over the patch (half-width `patch`) of |B_f|² at the range r_app, per frequency of the stride (weights²
+    applied)."""
+    x = np.linspace(-patch, patch, 1 + int(round((PATCH_POINTS - 1) * patch / PATCH)))
     yy, xx = np.meshgrid(x, x, indexing="ij")
     pts = np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, r_app)], axis=1)
     d_out = np.linalg.norm(pts[:, None, :] - rig.elements[None], axis=2)
@@ -144,14 +147,17 @@ def patch_energy(rig: Rig, v: np.ndarray, r_app: float) -> np.ndarray:
     return np.array(out)
 
 
-def check(rig: Rig, first: np.ndarray, last: np.ndarray, length: float, focal: FocalRig) -> tuple[float, float, float]:
-    """(direct, F2 model, F2′ model) confocal energies of one path (`patch_energy` summed)."""
+def check(
+    rig: Rig, first: np.ndarray, last: np.ndarray, length: float, focal: FocalRig, patch: float = PATCH
+) -> tuple[float, float, float]:
+    """(direct, F2 model, F2′ model) confocal energies of one path (`patch_energy` summed; the path's own over a
+    patch of half-width `patch`, the points' in focus over the default one, which holds them)."""
     rays = StraightRays(rig.elements, rig.z_surface, 3)
     big = np.full(rig.freqs.size, 1e3)
     r_app = 0.5 * (first[2] + last[2] + length)
     mid = np.array([*(0.5 * (first[:2] + last[:2])), r_app])
     direct = patch_energy(
-        rig, path_spectra(one_path(first, last, length), rig.freqs, rig.c0, big, rays, rig.transmits), r_app
+        rig, path_spectra(one_path(first, last, length), rig.freqs, rig.c0, big, rays, rig.transmits), r_app, patch
     )
     point = one_path(mid, mid, 0.0)
     e_pt = patch_energy(rig, path_spectra(point, rig.freqs, rig.c0, big, rays, rig.transmits, first_order=True), r_app)
@@ -181,10 +187,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--per-bin", type=int, default=30, help="paths sampled per 1-ℓ_s bin of apparent depth")
     ap.add_argument("--walks", type=int, default=20000)
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--bins", type=int, nargs="+", default=None, help="apparent depths (ℓ_s) of the bins")
+    ap.add_argument(
+        "--patch",
+        type=float,
+        default=PATCH * 1e3,
+        help="half-width (mm) of the patch the paths' own confocal energy is summed over (deep, defocused paths "
+        "spread wider than the default 6 mm: 14 mm holds them at 10–12 ℓ_s on the Foldy–Lax rig)",
+    )
     ap.add_argument("--out", type=Path, default=None, help="save the sampled paths and their energies (npz)")
     args = ap.parse_args(argv)
-    if args.per_bin < 1 or args.walks < 1:
-        print(f"--per-bin, --walks: expected integers >= 1, got {args.per_bin}, {args.walks}", file=sys.stderr)
+    if args.per_bin < 1 or args.walks < 1 or args.patch <= 0:
+        print(
+            f"--per-bin, --walks, --patch: expected integers >= 1 and a patch > 0 mm, got {args.per_bin}, "
+            f"{args.walks}, {args.patch}",
+            file=sys.stderr,
+        )
         return 2
     rig = headline_rig() if args.rig == "headline" else foldy_lax_rig()
     focal = FocalRig.from_grid(
@@ -199,14 +217,19 @@ def main(argv: list[str] | None = None) -> int:
     energy = walks.start_weight[w] * np.exp(-walks.length / rig.la - (secant_over_sines(span) * d1 + dn) / rig.lext)
     mid = 0.5 * (walks.start[w, :2] + walks.end[:, :2])
     rng = np.random.default_rng(1)
-    bins = range(1, 9) if args.rig == "headline" else range(1, 6)
+    bins = args.bins or (range(1, 9) if args.rig == "headline" else range(1, 6))
     print(f"{args.rig}: direct / model confocal return of single paths, Σ over {args.per_bin} paths a bin (dB)")
     print("  apparent depth   direct/F2   direct/F2′")
     rows, t0 = [], time.perf_counter()
     for b in bins:
         sel = np.flatnonzero((np.abs(d_app / rig.ls - b) < 0.5) & (np.abs(mid).max(axis=1) <= MID_WINDOW))
         pick = rng.choice(sel, args.per_bin, p=energy[sel] / energy[sel].sum())
-        got = np.array([check(rig, walks.start[w[i]], walks.end[i], float(walks.length[i]), focal) for i in pick])
+        got = np.array(
+            [
+                check(rig, walks.start[w[i]], walks.end[i], float(walks.length[i]), focal, args.patch * 1e-3)
+                for i in pick
+            ]
+        )
         rows += [[b, *walks.start[w[i]], *walks.end[i], walks.length[i], *g] for i, g in zip(pick, got, strict=True)]
         direct, f2, f2p = got.sum(axis=0)
         print(
