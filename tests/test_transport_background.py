@@ -468,3 +468,45 @@ def test_speckle_beam_carries_the_power_of_the_synthesised_plane_wave() -> None:
         flat = (np.sum(profile**2) * (g[1] - g[0])) ** 2
         assert 0.75 < model / exact < 1.05, (z, model / exact)
         assert flat / exact > 1.25  # the flat beam's excess, which this test would catch
+
+
+def test_a_deep_focal_return_cell_gives_its_green_function_without_the_output_grids_images(monkeypatch) -> None:
+    """With the focal return in 3-D the grid reaches deep, and the output grid, coarsened to MAX_DIRECTIONS, repeats
+    each source laterally every λ/Δs: a deep cell's images come in at small sines. Each depth chunk is summed over the
+    directions its sources reach (`_depth_chunks`, docs/design.md §6.6), so one deep cell lit as at a fixed depth is
+    its Born echo t e^{−ik(a·x + c_a z)} G(u, r) at the elements; summed over every direction it is not."""
+    lay = _layer(single_scattering="field")
+    probe = Probe.matrix(8, 8, 0.34e-3, 2.2e6, 0.8e6)
+    si = np.array([[-0.2, 0.0], [0.0, 0.0], [0.15, 0.1]])
+    f = np.linspace(1.8e6, 2.6e6, 4)
+    ap = (8 * 0.34e-3, 8 * 0.34e-3)
+    light = np.full(1, 1e-3)
+
+    def echo_error(depth: float, every_direction: bool) -> float:
+        ss = SingleScatteringField(
+            lay, si, f, np.ones((1, f.size)), np.array([2.2e6]), C0, 3, ap, 20e-3, np.random.default_rng(0)
+        )
+        assert ss.axes is not None and ss.keep is not None
+        assert C0 / f.max() / ss.ds < 20e-3  # the images are nearer than the cell's range
+        lit_at = np.repeat(light, ss.nz)
+        ss.add_focal_return(np.ones((1, ss.nz)), None, lit_at)
+        if every_direction:
+            monkeypatch.setattr(ss, "_depth_chunks", lambda: [(0, ss.nz, np.arange(ss.n_o), None)])
+        else:
+            assert len(ss._depth_chunks()) > 1
+        ss.draw_beads = False
+        ss.advance()
+        assert ss.fr_state is not None
+        ix, iy, iz = ss.nx // 2, ss.ny // 2, int(np.argmin(np.abs(ss.depths - depth)))
+        ss.fr_state[:] = 0
+        ss.fr_state[ix, iy, iz] = 1.0
+        got = project_plane_waves(ss.spectrum(), f, C0, probe.positions, ss.s_out, ss.axes, ss.keep)
+        r = np.array([[ss._xs[ix], ss._ys[iy], lay.z_surface + ss.depths[iz]]])
+        t = ss._t_r * np.sqrt(ss._cell) * np.ones((1, f.size), dtype=np.complex64)
+        ref = radiate_points(r, t, probe.positions, si, f, C0, 3)
+        ref = ref * np.array([ss.beam(i, lit_at)[ix, iy, iz] for i in range(si.shape[0])])[None, None, :]
+        return float(np.linalg.norm(got - ref) / np.linalg.norm(ref))
+
+    for depth in (10e-3, 17e-3):
+        assert echo_error(depth, every_direction=False) < 0.12  # 4–10 %, as a shallow cell on the full grid
+        assert echo_error(depth, every_direction=True) > 0.5  # 127–197 %: its images

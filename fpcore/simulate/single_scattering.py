@@ -217,9 +217,10 @@ class SingleScatteringField:
 
     def _sub_band(
         self, idx: np.ndarray, fc: float
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, list[finufft.Plan], np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, list[tuple[int, int, np.ndarray, list, np.ndarray]]]:
         """What a frame does not change, per sub-band: the depth profile, the transmits' extinction (N_θ, nz), the
-        focal return's depth profile (or None), the NUFFT points and the factor applied after it (module doc)."""
+        focal return's depth profile (or None), per depth chunk (i0, i1, its output directions, its NUFFT plans per
+        transmit, the factor applied after them) (module doc)."""
         lay = self.layer
         ls, lext = float(lay.ls_at(fc)), float(lay.l_ext_at(fc))
         kc = 2 * np.pi * fc / self.c0
@@ -237,28 +238,82 @@ class SingleScatteringField:
         k = 2 * np.pi * self.freqs[idx] / self.c0  # (n_f,)
         kx = k[None, None, :] * self._qx[:, :, None]  # (N_o, N_θ, n_f)
         kz = k[None, None, :] * self._qz[:, :, None]
-        # e^{−iK·r}: r = (x, y, z_s + d); d_m = m hz (m ≥ 0) → modes centred: d = (m' + nz/2) hz with
-        # finufft's modes m' ∈ [−nz/2, nz/2); the axial frequency is demodulated by k_z0. One plan per transmit
-        # (each has its own steered beam), its points set once.
-        plans = []
-        for i in range(self.n_i):
-            pts = [np.ascontiguousarray(kx[:, i] * self.hx, dtype=np.float32).ravel()]
-            if self.dim == 3:
-                pts.append(np.ascontiguousarray(k[None, :] * self._qy[:, i, None] * self.hx, dtype=np.float32).ravel())
-            pts.append(np.ascontiguousarray((kz[:, i] - self._kz0) * self.hz, dtype=np.float32).ravel())
-            modes = (self.nx, self.ny, self.nz) if self.dim == 3 else (self.nx, self.nz)
-            plan = finufft.Plan(2, modes, eps=1e-3, isign=-1, dtype="complex64", modeord=0, upsampfac=1.25)
-            plan.setpts(*pts)
-            plans.append(plan)
-        # Phase of the depth origin (d = 0 at mode −nz//2) and of the surface, e^{−i k_z z_s}; Weyl weight; 1 − R².
-        m0 = self.nz // 2
-        ph = np.exp(-1j * ((kz - self._kz0) * self.hz * m0 + kz * self.layer.z_surface))
+        # e^{−iK·r}: r = (x, y, z_s + d); d_m = m hz (m ≥ 0) → modes centred: d = (i0 + m' + n/2) hz, finufft's modes
+        # m' ∈ [−n/2, n/2) over each chunk of n depths, summed over its own output directions (`_depth_chunks`); the
+        # axial frequency is demodulated by k_z0. One plan per chunk and transmit (each transmit has its own steered
+        # beam), its points set once.
         if self.dim == 3:
             weyl = (-1j * k[None, :] * self._ds2 / (8 * np.pi**2 * self._co[:, None]))[:, None, :]
         else:
             weyl = (-1j * self._ds2 / (4 * np.pi * self._co[:, None]) * np.ones_like(k)[None, :])[:, None, :]
-        post = (ph * weyl * self._t_r * self.taper[:, None, None]).astype(np.complex64)
-        return depth_w.astype(np.complex64), tx_w, fr_w, plans, post
+        chunks = []
+        for i0, i1, o_idx, o_taper in self._depth_chunks():
+            plans = []
+            for i in range(self.n_i):
+                pts = [np.ascontiguousarray(kx[o_idx, i] * self.hx, dtype=np.float32).ravel()]
+                if self.dim == 3:
+                    qy = k[None, :] * self._qy[o_idx, i, None] * self.hx
+                    pts.append(np.ascontiguousarray(qy, dtype=np.float32).ravel())
+                pts.append(np.ascontiguousarray((kz[o_idx, i] - self._kz0) * self.hz, dtype=np.float32).ravel())
+                modes = (self.nx, self.ny, i1 - i0) if self.dim == 3 else (self.nx, i1 - i0)
+                plan = finufft.Plan(2, modes, eps=1e-3, isign=-1, dtype="complex64", modeord=0, upsampfac=1.25)
+                plan.setpts(*pts)
+                plans.append(plan)
+            # Phase of the chunk's depth origin (d = i0 hz + (m' + n/2) hz) and of the surface, e^{−i k_z z_s}; Weyl
+            # weight; 1 − R²; the output grid's taper and the chunk's.
+            kz_o = kz[o_idx]
+            ph = np.exp(-1j * ((kz_o - self._kz0) * self.hz * (i0 + (i1 - i0) // 2) + kz_o * self.layer.z_surface))
+            taper = self.taper[o_idx] if o_taper is None else self.taper[o_idx] * o_taper
+            post = (ph * weyl[o_idx] * self._t_r * taper[:, None, None]).astype(np.complex64)
+            chunks.append((i0, i1, o_idx, plans, post))
+        return depth_w.astype(np.complex64), tx_w, fr_w, chunks
+
+    def _depth_chunks(self) -> list[tuple[int, int, np.ndarray, np.ndarray | None]]:
+        """The grid's depths in chunks [i0, i1), each summed over the output directions that its sources reach:
+        (i0, i1, output indices, their taper or None for all ones) (docs/design.md §6.6, the output grid's images).
+        The output sines Δs apart repeat every source laterally every λ/Δs; the grid's cut-off s_end hides the images
+        from the elements only for a shallow source, so with the focal return in 3-D (its grid reaches the record's
+        end) a source at the range R is seen only at |s| < s_X(R), s_X = X/√(X² + R²), X the lateral reach of its
+        lit sources plus half the aperture, then a cosine edge CHUNK_EDGE wide (its images come in at
+        (λ/Δs − X)/√((λ/Δs − X)² + R²), beyond for a source near the axis). A chunk's s_X spans at most CHUNK_SPAN and
+        its cut is its largest. One chunk, every depth and direction, otherwise."""
+        every = np.arange(self.n_o)
+        full: list[tuple[int, int, np.ndarray, np.ndarray | None]] = [(0, self.nz, every, None)]
+        if self.dim != 3 or self._fr_var is None:
+            return full
+        z_s = self.layer.z_surface
+        tan_max = float(np.abs(self._tan).max(initial=0.0))
+        ap = max(self._aperture)
+        # Where the beads are worth their own beams' reach: their echo down by e^{−12} at the band's longest ℓ_ext
+        # (ℓ_ext(f) may grow or fall with f); the focal return's, lit at its light depth.
+        d_beads = 6.0 * float(np.max(self.layer.l_ext_at(self.freqs)))
+        lit = self.depths if self._fr_light is None else self._fr_light
+        z_lit = z_s + lit
+        reach = z_lit * tan_max + 1.15 * beam_half_width(ap, z_lit, self._lam)
+        z_own = z_s + self.depths
+        own = z_own * tan_max + 1.15 * beam_half_width(ap, z_own, self._lam)
+        x_src = np.where(self.depths <= d_beads, np.maximum(reach, own), reach) + 0.5 * ap
+        s_x = x_src / np.hypot(x_src, z_own)  # (nz,)
+        s_mag = np.hypot(self.s_out[:, 0], self.s_out[:, 1])
+        s_top = float(s_mag.max())
+        chunks: list[tuple[int, int, np.ndarray, np.ndarray | None]] = []
+        i0 = 0
+        while i0 < self.nz:
+            i1 = i0 + 1
+            while i1 < self.nz and np.ptp(s_x[i0 : i1 + 1]) <= CHUNK_SPAN:
+                i1 += 1
+            cut = float(s_x[i0:i1].max())
+            if cut + CHUNK_EDGE >= s_top:  # every direction
+                if chunks and chunks[-1][3] is None:  # and so did the one before: one chunk
+                    chunks[-1] = (chunks[-1][0], i1, every, None)
+                else:
+                    chunks.append((i0, i1, every, None))
+            else:
+                keep = np.flatnonzero(s_mag < cut + CHUNK_EDGE)
+                t = np.clip((s_mag[keep] - cut) / CHUNK_EDGE, 0.0, 1.0)
+                chunks.append((i0, i1, keep, (0.5 + 0.5 * np.cos(np.pi * t)).astype(np.float32)))
+            i0 = i1
+        return chunks
 
     def prepare(self) -> None:
         """Build what no frame changes (per sub-band depth profiles and NUFFT plans, the transmits' beams),
@@ -270,9 +325,10 @@ class SingleScatteringField:
             for wts, fc in zip(self.blend, self.centres, strict=True):
                 idx = np.flatnonzero(wts > 0)
                 if idx.size:
-                    depth_w, tx_w, fr_w, plans, post = self._sub_band(idx, fc)
-                    post = post * wts[idx].astype(np.float32)[None, None, :]
-                    self._plans.append((idx, depth_w, tx_w, fr_w, plans, post))
+                    depth_w, tx_w, fr_w, chunks = self._sub_band(idx, fc)
+                    bw = wts[idx].astype(np.float32)[None, None, :]
+                    chunks = [(i0, i1, o, plans, post * bw) for i0, i1, o, plans, post in chunks]
+                    self._plans.append((idx, depth_w, tx_w, fr_w, chunks))
         if self._beams is None:
             self._beams = np.stack([self.beam(i) for i in range(self.n_i)])
         if self._fr_light is not None and self._fr_beams is None:
@@ -287,26 +343,35 @@ class SingleScatteringField:
         assert self._plans is not None and self._beams is not None and self._plan_lock is not None
         out = np.zeros((self.n_o, self.n_i, self.freqs.size), dtype=np.complex64)
         fr_beams = self._beams if self._fr_beams is None else self._fr_beams
-        for idx, depth_w, tx_w, fr_w, plans, post in self._plans:
+        for idx, depth_w, tx_w, fr_w, chunks in self._plans:
             base = self.state * depth_w[None, None, :]
             focal = None
             if fr_w is not None:  # its variance holds its legs' extinction: no transmit factor (module doc)
                 assert self.fr_state is not None
                 focal = self.fr_state * fr_w[None, None, :]
-            for i, plan in enumerate(plans):
+            for i in range(self.n_i):
                 grid = base * tx_w[i][None, None, :]
                 grid *= self._beams[i]
                 if focal is not None:  # lit as its ends are (`add_focal_return`'s light), else as the beads
                     grid += focal * fr_beams[i]
-                with self._plan_lock:
-                    vals = plan.execute(grid if self.dim == 3 else np.ascontiguousarray(grid[:, 0, :]))
-                out[:, i, idx] += vals.reshape(self.n_o, idx.size) * post[:, i]
+                for i0, i1, o_idx, plans, post in chunks:
+                    part = np.ascontiguousarray(grid[:, :, i0:i1] if self.dim == 3 else grid[:, 0, i0:i1])
+                    with self._plan_lock:
+                        vals = plans[i].execute(part).reshape(o_idx.size, idx.size) * post[:, i]
+                    if o_idx.size == self.n_o:
+                        out[:, i, idx] += vals
+                    else:
+                        out[o_idx[:, None], i, idx[None, :]] += vals
         return out
 
     @property
     def _ds2(self) -> float:
         return self.ds**2 if self.dim == 3 else self.ds
 
+
+#: The output directions see a source this far in sine beyond its rays to the elements, a cosine edge; the grid's
+#: depths in chunks over which these rays' sine spans at most CHUNK_SPAN (`SingleScatteringField._depth_chunks`).
+CHUNK_EDGE, CHUNK_SPAN = 0.1, 0.1
 
 #: Spatial period λ/Δs of the output grid over twice the largest source–element offset (`output_grid`).
 PERIOD_MARGIN = 1.5
