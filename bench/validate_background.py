@@ -17,6 +17,10 @@
     .venv/bin/python bench/validate_background.py --reference out/bench/fl_reference_3d_deep.npz --slab \
         --layer envelope=diffusion --layer cbs=True --layer single_scattering=field --layer angular=halo \
         --match-dispersion --model-realisations 24       # the 5.6 ℓ_s 3-D slab: the slope over 1–5 ℓ_s (3.5 min)
+    .venv/bin/python bench/validate_background.py --reference out/bench/fl_reference_3d_deep.npz --slab \
+        --layer envelope=diffusion --layer cbs=True --layer single_scattering=field --layer angular=halo \
+        --layer focal_return=True --layer confocal_notch=True --match-dispersion --model-realisations 24
+                                 # the same slab, the focal return with the notch: all four pass (16 min, 2 cores)
 
 The Foldy–Lax reference (bench/foldy_lax_reference.py, cached in out/bench/) and the model are built
 for the same geometry: array, finite-aperture plane-wave transmits, band, time window, a scattering
