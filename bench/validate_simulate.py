@@ -2,6 +2,8 @@
 
     .venv/bin/python bench/validate_simulate.py            # ~2–4 min on 2 cores
     .venv/bin/python bench/validate_simulate.py --full     # + the headline on full frames (slow)
+    .venv/bin/python bench/validate_simulate.py --headline-only --layer focal_return=True --layer confocal_notch=True
+                                    # the quick headline on a background option (docs/design.md §6.6), ~6 min
 
 Sections:
  1. Faran coefficients: energy conservation, rigid limit, low-frequency (equivalent fluid) limit.
@@ -491,8 +493,20 @@ def lesion() -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--full", action="store_true", help="also run the headline on full frames (slow)")
+    ap.add_argument("--layer", action="append", default=[], help="KEY=VALUE: the scenario layer's option")
+    ap.add_argument("--headline-only", action="store_true", help="only the quick headline's paper row (frames 0, 31)")
     args = ap.parse_args()
     t0 = time.perf_counter()
+    if args.layer or args.headline_only:
+        from validate_background import parse_layer
+
+        kw = parse_layer(args.layer)
+        label = "paper" + "".join(f", {k}={v}" for k, v in kw.items())
+        headline(True, [0, 31], {label: kw})
+        if args.full:
+            headline(False, [0], {label: kw})
+        print(f"\n(total {time.perf_counter() - t0:.0f} s)")
+        return
     faran_checks()
     mean_free_path()
     contrast_vs_depth()

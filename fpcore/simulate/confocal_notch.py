@@ -176,25 +176,30 @@ class ConfocalNotch:
 def keep_envelope(before: np.ndarray, after: np.ndarray, axis: int, n_t: int, width: int) -> np.ndarray:
     """`after` with the time envelope of `before`: both are spectra on contiguous frequency bins along `axis`; on
     the baseband time grid of n_t samples the energy summed over the other axes, averaged over `width` samples
-    (periodic), sets a gain g(t) = √(⟨|before|²⟩/⟨|after|²⟩) applied in time; the spectrum is returned on the
-    same bins."""
+    (periodic), sets a gain g(t) = √(⟨|before|²⟩/⟨|after|²⟩) applied in time to `after`; the spectrum is returned
+    on the same bins. The two envelopes are measured through a Hann taper over the bins (as a pulse's spectrum
+    would weigh them): the bins' rectangular edges put sinc sidelobes ≈ 35 dB under the peak over the whole
+    period, and in the faint tail and before the surface echo those, not the field's own energy, would set the
+    gain (docs/design.md §6.6: +3.5 … +7 dB at the record's last 5 µs of the headline rig)."""
     n_f = before.shape[axis]
     if n_t < n_f:
         raise ValueError(f"n_t: expected at least the {n_f} frequency bins, got {n_t}")
     others = tuple(i for i in range(before.ndim) if i != axis)
+    shape = [1] * before.ndim
+    shape[axis] = n_f
+    taper = np.hanning(n_f + 2)[1:-1].astype(np.float32).reshape(shape)
     kernel = np.zeros(n_t)
     kernel[:width] = 1.0 / width
     kernel = np.roll(kernel, -(width // 2))
 
-    def smoothed_energy(spec: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        t = sfft.ifft(spec, n=n_t, axis=axis, workers=-1)
+    def smoothed_energy(spec: np.ndarray) -> np.ndarray:
+        t = sfft.ifft(spec * taper, n=n_t, axis=axis, workers=-1)
         e = np.sum(np.abs(t) ** 2, axis=others)
-        return t, np.real(sfft.ifft(sfft.fft(e) * sfft.fft(kernel)))
+        return np.real(sfft.ifft(sfft.fft(e) * sfft.fft(kernel)))
 
-    _, e0 = smoothed_energy(before)
-    t1, e1 = smoothed_energy(after)
+    e0, e1 = smoothed_energy(before), smoothed_energy(after)
     gain = np.sqrt(np.maximum(e0, 0.0) / np.maximum(e1, 1e-30 * max(float(e1.max()), 1e-30)))
-    shape = [1] * before.ndim
     shape[axis] = n_t
+    t1 = sfft.ifft(after, n=n_t, axis=axis, workers=-1)
     spec = sfft.fft(t1 * gain.reshape(shape).astype(np.float32), axis=axis, workers=-1)
     return np.ascontiguousarray(np.take(spec, np.arange(n_f), axis=axis), dtype=np.complex64)
