@@ -289,9 +289,10 @@ class SingleScatteringField:
         d_beads = 6.0 * float(np.max(self.layer.l_ext_at(self.freqs)))
         lit = self.depths if self._fr_light is None else self._fr_light
         z_lit = z_s + lit
-        reach = z_lit * tan_max + 1.15 * beam_half_width(ap, z_lit, self._lam)
+        # a beam's cosine edge ends (1 + BEAM_SOFT) half-widths from its steered centre (`beam`)
+        reach = z_lit * tan_max + (1 + BEAM_SOFT) * beam_half_width(ap, z_lit, self._lam)
         z_own = z_s + self.depths
-        own = z_own * tan_max + 1.15 * beam_half_width(ap, z_own, self._lam)
+        own = z_own * tan_max + (1 + BEAM_SOFT) * beam_half_width(ap, z_own, self._lam)
         x_src = np.where(self.depths <= d_beads, np.maximum(reach, own), reach) + 0.5 * ap
         s_x = x_src / np.hypot(x_src, z_own)  # (nz,)
         s_mag = np.hypot(self.s_out[:, 0], self.s_out[:, 1])
