@@ -41,7 +41,8 @@ __all__ = ["ConfocalNotch"]
 
 #: Conjugate-gradient iterations of the least-squares fit (2-D Foldy–Lax rig: the removed share is 0.199 after 12,
 #: 0.201 after 20 and 0.203 after 40). In 3-D the fit does not converge by then (removed share 0.24 / 0.26 after
-#: 12 / 24 on the Foldy–Lax deep slab, whose four figures do not move; 0.82 / 0.87 on the quick headline rig), so
+#: 12 / 24 on the Foldy–Lax deep slab, whose four figures do not move; 0.82 / 0.87 on the quick headline rig, whose
+#: fog moves ≤ 0.5 dB), so
 #: the count is an early stop: docs/design.md §6.6, "The notch's fit in 3-D".
 NOTCH_ITERATIONS = 12
 
