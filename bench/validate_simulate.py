@@ -493,7 +493,9 @@ def lesion() -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--full", action="store_true", help="also run the headline on full frames (slow)")
-    ap.add_argument("--layer", action="append", default=[], help="KEY=VALUE: the scenario layer's option")
+    ap.add_argument(
+        "--layer", action="append", default=[], help="KEY=VALUE: the scenario layer's option (runs the headline only)"
+    )
     ap.add_argument("--headline-only", action="store_true", help="only the quick headline's paper row (frames 0, 31)")
     args = ap.parse_args()
     t0 = time.perf_counter()

@@ -42,8 +42,7 @@ __all__ = ["ConfocalNotch"]
 #: Conjugate-gradient iterations of the least-squares fit (2-D Foldy–Lax rig: the removed share is 0.199 after 12,
 #: 0.201 after 20 and 0.203 after 40). In 3-D the fit does not converge by then (removed share 0.24 / 0.26 after
 #: 12 / 24 on the Foldy–Lax deep slab, whose four figures do not move; 0.82 / 0.87 on the quick headline rig, whose
-#: fog moves ≤ 0.5 dB), so
-#: the count is an early stop: docs/design.md §6.6, "The notch's fit in 3-D".
+#: fog moves ≤ 0.5 dB), so the count is an early stop: docs/design.md §6, "The notch's fit in 3-D".
 NOTCH_ITERATIONS = 12
 
 
@@ -188,9 +187,12 @@ def keep_envelope(before: np.ndarray, after: np.ndarray, axis: int, n_t: int, wi
     if n_t < n_f:
         raise ValueError(f"n_t: expected at least the {n_f} frequency bins, got {n_t}")
     others = tuple(i for i in range(before.ndim) if i != axis)
-    shape = [1] * before.ndim
-    shape[axis] = n_f
-    taper = np.hanning(n_f + 2)[1:-1].astype(np.float32).reshape(shape)
+
+    def along_axis(v: np.ndarray) -> np.ndarray:
+        """A 1-D array v shaped to broadcast along `axis`."""
+        return v.reshape([v.size if i == axis else 1 for i in range(before.ndim)])
+
+    taper = along_axis(np.hanning(n_f + 2)[1:-1].astype(np.float32))
     kernel = np.zeros(n_t)
     kernel[:width] = 1.0 / width
     kernel = np.roll(kernel, -(width // 2))
@@ -202,7 +204,6 @@ def keep_envelope(before: np.ndarray, after: np.ndarray, axis: int, n_t: int, wi
 
     e0, e1 = smoothed_energy(before), smoothed_energy(after)
     gain = np.sqrt(np.maximum(e0, 0.0) / np.maximum(e1, 1e-30 * max(float(e1.max()), 1e-30)))
-    shape[axis] = n_t
-    t1 = sfft.ifft(after, n=n_t, axis=axis, workers=-1)
-    spec = sfft.fft(t1 * gain.reshape(shape).astype(np.float32), axis=axis, workers=-1)
+    t1 = sfft.ifft(after, n=n_t, axis=axis, workers=-1)  # the gain applies to the field itself, untapered
+    spec = sfft.fft(t1 * along_axis(gain.astype(np.float32)), axis=axis, workers=-1)
     return np.ascontiguousarray(np.take(spec, np.arange(n_f), axis=axis), dtype=np.complex64)
