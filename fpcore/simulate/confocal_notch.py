@@ -51,9 +51,11 @@ class ConfocalNotch:
     of spacings `spacings` (one per lateral axis of the dimension `dim`), transmit sines `sines` (N_θ, 2),
     frequencies `freqs` (Hz, uniform) and a reflectivity grid over the depths `z_range` (m below the array, the
     shallow end the medium's surface: a field that starts there has no reflectivity above it; at most one axial
-    period; V's delays are absolute). With a `sensor` (E, E^H), the map of the plane waves onto the array's elements and
-    its adjoint, the fit and the notch are made where the array measures, E V − E A ρ̂ (module doc). The NUFFT
-    plans are built once, on first use, and shared by copies behind one lock."""
+    period; V's delays are absolute). With a `sensor` (E, E^H), the map of the plane waves onto the array's elements
+    and its adjoint, the fit and the notch are made where the array measures, E V − E A ρ̂ (module doc); a
+    `constraint` (a projection in that domain: the measured reciprocity, `reciprocity.ElementReciprocity`) applies
+    to the notched field before its envelope is restored. The NUFFT plans are built once, on first use, and shared
+    by copies behind one lock."""
 
     def __init__(
         self,
@@ -67,6 +69,7 @@ class ConfocalNotch:
         iterations: int = NOTCH_ITERATIONS,
         sensor: tuple[Callable[[np.ndarray], np.ndarray], Callable[[np.ndarray], np.ndarray]] | None = None,
         time_grid: tuple[int, int] | None = None,
+        constraint: Callable[[np.ndarray], np.ndarray] | None = None,
     ) -> None:
         so, si = np.asarray(s_out, dtype=np.float64), np.asarray(sines, dtype=np.float64)
         f = np.asarray(freqs, dtype=np.float64)
@@ -76,6 +79,7 @@ class ConfocalNotch:
             raise ValueError(f"spacings: expected {2 if dim == 3 else 1} lateral spacings for dim {dim}")
         self.shape = (so.shape[0], si.shape[0], f.size)
         self.dim, self.iterations, self.sensor, self.time_grid = dim, iterations, sensor, time_grid
+        self.constraint = constraint
         k = 2 * np.pi * f / c0
         qz = cosines(si)[None, :] + cosines(so)[:, None]  # (N_o, N_θ)
         lateral = [si[None, :, d] - so[:, None, d] for d in range(len(spacings))]
@@ -167,6 +171,8 @@ class ConfocalNotch:
             raise ValueError(f"v: expected shape {self.shape}, got {v.shape}")
         y = np.asarray(v, dtype=np.complex64) if self.sensor is None else self.sensor[0](v)
         out = y - self.fit(y)
+        if self.constraint is not None:
+            out = self.constraint(out)
         if self.time_grid is not None:
             return keep_envelope(y, out, 0 if self.sensor is not None else 2, *self.time_grid)
         e0, e1 = float(np.sum(np.abs(y) ** 2)), float(np.sum(np.abs(out) ** 2))
@@ -193,14 +199,14 @@ def keep_envelope(before: np.ndarray, after: np.ndarray, axis: int, n_t: int, wi
         return v.reshape([v.size if i == axis else 1 for i in range(before.ndim)])
 
     taper = along_axis(np.hanning(n_f + 2)[1:-1].astype(np.float32))
-    kernel = np.zeros(n_t)
-    kernel[:width] = 1.0 / width
-    kernel = np.roll(kernel, -(width // 2))
+    shifts = range(-(width // 2), width - width // 2)  # the running mean's window about each sample
 
     def smoothed_energy(spec: np.ndarray) -> np.ndarray:
         t = sfft.ifft(spec * taper, n=n_t, axis=axis, workers=-1)
-        e = np.sum(np.abs(t) ** 2, axis=others)
-        return np.real(sfft.ifft(sfft.fft(e) * sfft.fft(kernel)))
+        e = np.sum(np.abs(t).astype(np.float64) ** 2, axis=others)
+        # a sum of non-negative terms (a convolution through FFTs leaves −1e-8 of the peak where the field is dark,
+        # and a gain against a negative floor is unbounded)
+        return sum(np.roll(e, d) for d in shifts) / width
 
     e0, e1 = smoothed_energy(before), smoothed_energy(after)
     gain = np.sqrt(np.maximum(e0, 0.0) / np.maximum(e1, 1e-30 * max(float(e1.max()), 1e-30)))

@@ -55,10 +55,10 @@ import scipy.fft as sfft
 
 from ..acquisition import element_grid_axes
 from ..geometry import cosines
-from .confocal_notch import ConfocalNotch
+from .confocal_notch import ConfocalNotch, keep_envelope
 from .memory import MemoryKernel, block_energy_gain, block_kernel, effective_spread, grid_kernel, lattice_steps
 from .paths import FocalRig, draw_paths, focal_return
-from .reciprocity import ReciprocalBlock
+from .reciprocity import ElementReciprocity, ReciprocalBlock
 from .single_scattering import SingleScatteringField
 from .waves import Band, TimeWindow
 
@@ -392,6 +392,12 @@ class DiffuseBackground:
         # With the confocal notch, the Gaussian field is drawn out of the confocal subspace the focal return fills,
         # on the array's elements (`confocal_notch`, docs/design.md §6.6, F4).
         self._notch: ConfocalNotch | None = None
+        # The measured reciprocity (R1–R2): the beams' sidelobes see outputs outside the block, whose noise is
+        # independent, and break the symmetry the array measures; the field is projected back onto it.
+        self._reciprocity: ElementReciprocity | None = None
+        if layer.cbs and (layer.measured_reciprocity or layer.confocal_notch):
+            self._reciprocity = ElementReciprocity(el, s, self.freqs, c0)
+        self._envelope_width = max(1, round(NOTCH_ENVELOPE_WINDOW / self.dt))
         if layer.confocal_notch:
             # from the surface to a normally incident echo at the period's end
             z_range = (layer.z_surface, 0.5 * c0 * (window.t0 + window.period))
@@ -404,7 +410,10 @@ class DiffuseBackground:
                 dim,
                 z_range,
                 sensor=(self._project, self._adjoint),
-                time_grid=(self.n_bb, max(1, round(NOTCH_ENVELOPE_WINDOW / self.dt))),
+                time_grid=(self.n_bb, self._envelope_width),
+                # The notch takes a symmetric part (a reflectivity's) out of the field and raises the share of the
+                # antisymmetric remainder: the notched field is projected back onto the measured reciprocity.
+                constraint=self._reciprocity,
             )
         self.state: np.ndarray | None = None
         self.block_state: np.ndarray | None = None
@@ -606,18 +615,26 @@ class DiffuseBackground:
             return self._frozen
         self._advance()
         aw = self.multiple_spectrum() * self.weights[:, None, None]
-        multiple = self._project(aw) if self._notch is None else self._notch(aw)
+        if self._notch is not None:
+            multiple = self._notch(aw)
+        elif self._reciprocity is not None:  # its time envelope kept (`keep_envelope`): only its place changes
+            on_elements = self._project(aw)
+            multiple = keep_envelope(on_elements, self._reciprocity(on_elements), 0, self.n_bb, self._envelope_width)
+        else:
+            multiple = self._project(aw)
         single = None
         if self.single is not None:  # on its own, finer grid (single_scattering.output_grid)
             ss = self.single
             single = project_plane_waves(ss.spectrum(), self.freqs, self.c0, self.elements, ss.s_out, ss.axes, ss.keep)
+            if self._reciprocity is not None:  # the first order's model (its beams) is not exactly reciprocal either
+                single = keep_envelope(single, self._reciprocity(single), 0, self.n_bb, self._envelope_width)
         if self.g1 is None:
             self._frozen, self.state, self.block_state = (multiple, single), None, None
         return multiple, single
 
 
-#: The confocal notch keeps the Gaussian field's energy per time, averaged over this window (s; about a pulse length:
-#: the transport envelope varies over microseconds; docs/design.md §6.6, F4).
+#: The confocal notch, and the measured reciprocity without it, keep the Gaussian field's energy per time, averaged
+#: over this window (s; about a pulse length: the transport envelope varies over microseconds; docs/design.md §6.6).
 NOTCH_ENVELOPE_WINDOW = 0.5e-6
 
 #: Walks drawn for the focal return's depth profile (`focal_return_tables`), from a fixed seed: a table of the

@@ -95,7 +95,10 @@ class ScatteringLayer:
     focal_return: the orders ≥ 2 whose ends the rig sees as one point, drawn as a second reflectivity on the beads'
     grid at their apparent depth (`paths.focal_return_variance`, docs/design.md §6.6; needs single_scattering="field");
     confocal_notch: with the focal return, the Gaussian field drawn out of the confocal subspace on the array's
-    elements, where the focal return already counts every path's share (`confocal_notch`, F4; docs/design.md §6.6).
+    elements, where the focal return already counts every path's share (`confocal_notch`, F4; docs/design.md §6.6);
+    measured_reciprocity: with cbs, the background (both orders) projected onto the fields whose element-basis matrix
+    is symmetric as the transmits measure it (`reciprocity.ElementReciprocity`, R1–R2; default since 2026-12-06,
+    False keeps the earlier background; always on with the notch).
     """
 
     z_surface: float
@@ -120,6 +123,7 @@ class ScatteringLayer:
     memory: bool = False
     focal_return: bool = False
     confocal_notch: bool = False
+    measured_reciprocity: bool = True
 
     def __post_init__(self) -> None:
         if self.angular not in ("uniform", "halo"):

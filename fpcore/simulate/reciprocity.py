@@ -37,6 +37,22 @@ keep their independent noise.
 The cone's width is the beams' (exp(−k²q²a_g²/4)) at every age: while the halo is still narrower than the
 aperture (the first few µs under the surface) the physical cone is wider; plane-wave elements with the
 same momentum transfer would then be correlated, which this model does not represent.
+
+The measured reciprocity (`ElementReciprocity`). What the array measures of R_uu' = R_u'u through its transmits
+(plane-wave phases φ_θ(u) = e^{−ik s_θ·u}, the transmits' obliquity c_θ) is that the N_θ × N_θ matrix
+
+    S(θ', θ) = Σ_u φ_θ'(u) M(u, θ)/c_θ  is symmetric                                                    (R1)
+
+(the receive beam at −s_θ' of transmit θ: the bench's symmetry figure). A field drawn per output with independent
+noise outside the block breaks (R1) through the beams' sidelobes, and a projection that takes a symmetric part
+out of the field (the confocal notch, `confocal_notch`) raises the antisymmetric remainder's share. The orthogonal
+projection of W = M/c_θ onto the fields that satisfy (R1) removes W's component along Φ̄ Y, Y antisymmetric (the
+span orthogonal to them), with
+
+    G Y + Y Gᵀ = −(S − Sᵀ),   G = Φᵀ Φ̄ (N_θ × N_θ, Hermitian positive definite),                           (R2)
+
+solved in G's eigenbasis (G = U Λ U^H: Z = U^H Y Ū, Z_ij = C_ij/(λ_i + λ_j)). Then S becomes (S + Sᵀ)/2 plus
+nothing else, and the part of W that (R1) does not constrain is left as it was.
 """
 
 from __future__ import annotations
@@ -46,7 +62,7 @@ import numpy as np
 from ..acquisition import element_grid_axes
 from ..geometry import cosines
 
-__all__ = ["ReciprocalBlock", "array_factor", "main_lobe_steps"]
+__all__ = ["ElementReciprocity", "ReciprocalBlock", "array_factor", "main_lobe_steps"]
 
 #: At most this many grid steps per axis in a transmit's main lobe (cost: P² noise series).
 MAX_LOBE_STEPS = 4
@@ -168,3 +184,47 @@ def _array_factor_on_grid(elements: np.ndarray, m: np.ndarray, ds: np.ndarray, k
         f_d = np.mean(np.exp(1j * k[None, :, None] * (vals[:, None, None] * ds[d]) * u[None, None, :]), axis=2)
         out *= f_d[inv.ravel()]
     return out
+
+
+#: Pairs of G's eigen-directions whose λ_i + λ_j fall below this fraction of the largest are left unprojected (R2).
+RANK_TOLERANCE = 1e-10
+
+
+class ElementReciprocity:
+    """The orthogonal projection of element-basis spectra M (N_f, N_u, N_θ) onto those whose measured matrix
+    S(θ', θ) = Σ_u e^{−ik s_θ'·u} M(u, θ)/c_θ is symmetric at every frequency (module doc, R1–R2), for the
+    array's `elements`, the transmits' `sines` (N_θ, 2) and the frequencies `freqs` (Hz)."""
+
+    def __init__(self, elements: np.ndarray, sines: np.ndarray, freqs: np.ndarray, c0: float) -> None:
+        el = np.asarray(elements, dtype=np.float64)[:, :2]
+        si = np.asarray(sines, dtype=np.float64)
+        k = 2 * np.pi * np.asarray(freqs, dtype=np.float64) / c0
+        phi = np.exp(-1j * k[:, None, None] * (el @ si[:, :2].T)[None, :, :])  # (N_f, N_u, N_θ)
+        gram = np.einsum("fua,fub->fab", phi, np.conj(phi))  # G = Φᵀ Φ̄
+        lam, u = np.linalg.eigh(gram)
+        lam = np.maximum(lam, 0.0)
+        pair = lam[:, :, None] + lam[:, None, :]
+        # Transmits closer than the array resolves make G nearly singular: the pairs of directions it does not
+        # resolve (λ_i + λ_j below RANK_TOLERANCE of the largest) carry no measured asymmetry and are left alone.
+        resolved = pair > RANK_TOLERANCE * pair.max(axis=(1, 2), keepdims=True)
+        self.shape = (k.size, el.shape[0], si.shape[0])
+        self._phi = phi
+        self._u = u
+        self._inv_sum = np.where(resolved, 1.0 / np.where(resolved, pair, 1.0), 0.0)  # 1/(λ_i + λ_j)
+        self._c = cosines(si)
+
+    def measured(self, m: np.ndarray) -> np.ndarray:
+        """S(θ', θ) of (R1) per frequency: (N_f, N_θ, N_θ)."""
+        return np.matmul(np.swapaxes(self._phi, 1, 2), m.astype(np.complex128) / self._c[None, None, :])
+
+    def __call__(self, m: np.ndarray) -> np.ndarray:
+        """M projected onto the fields satisfying (R1) (module doc, R2), complex64 of M's shape."""
+        if m.shape != self.shape:
+            raise ValueError(f"m: expected shape {self.shape} (N_f, N_u, N_θ), got {m.shape}")
+        s = self.measured(m)
+        rhs = -(s - np.swapaxes(s, 1, 2))  # G Y + Y Gᵀ = −(S − Sᵀ)
+        uh = np.conj(np.swapaxes(self._u, 1, 2))
+        z = np.matmul(np.matmul(uh, rhs), np.conj(self._u)) * self._inv_sum  # Z = U^H C Ū / (λ_i + λ_j)
+        y = np.matmul(np.matmul(self._u, z), np.swapaxes(self._u, 1, 2))  # Y = U Z Uᵀ
+        w = m.astype(np.complex128) / self._c[None, None, :] + np.matmul(np.conj(self._phi), y)
+        return np.ascontiguousarray(w * self._c[None, None, :], dtype=np.complex64)
