@@ -21,6 +21,8 @@
         --layer envelope=diffusion --layer cbs=True --layer single_scattering=field --layer angular=halo \
         --layer focal_return=True --layer confocal_notch=True --match-dispersion --model-realisations 24
                                  # the same slab, the focal return with the notch: all four pass (16 min, 2 cores)
+    .venv/bin/python bench/validate_background.py ... --layer measured_reciprocity=False
+                                 # the background before the measured reciprocity (docs/design.md §6.3, R1–R2)
 
 The Foldy–Lax reference (bench/foldy_lax_reference.py, cached in out/bench/) and the model are built
 for the same geometry: array, finite-aperture plane-wave transmits, band, time window, a scattering
