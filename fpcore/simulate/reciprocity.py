@@ -49,10 +49,12 @@ out of the field (the confocal notch, `confocal_notch`) raises the antisymmetric
 projection of W = M/c_θ onto the fields that satisfy (R1) removes W's component along Φ̄ Y, Y antisymmetric (the
 span orthogonal to them), with
 
-    G Y + Y Gᵀ = −(S − Sᵀ),   G = Φᵀ Φ̄ (N_θ × N_θ, Hermitian positive definite),                           (R2)
+    G Y + Y Gᵀ = −(S − Sᵀ),   G = Φᵀ Φ̄ (N_θ × N_θ, Hermitian, positive),                                    (R2)
 
-solved in G's eigenbasis (G = U Λ U^H: Z = U^H Y Ū, Z_ij = C_ij/(λ_i + λ_j)). Then S becomes (S + Sᵀ)/2 plus
-nothing else, and the part of W that (R1) does not constrain is left as it was.
+solved in G's eigenbasis (G = U Λ U^H, Gᵀ = Ū Λ Uᵀ; Y = U Z Uᵀ gives Λ Z + Z Λ = U^H C Ū, so Z_ij = (U^H C Ū)_ij /
+(λ_i + λ_j)). S loses its antisymmetric part; its symmetric part moves too, by that of G Y, unless G is a multiple of
+the identity (transmits the array resolves exactly): the projection is the smallest change of W, not of S, and the
+part of W orthogonal to every Φ̄ Y is left as it was.
 """
 
 from __future__ import annotations
