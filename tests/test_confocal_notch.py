@@ -5,8 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fpcore.acquisition import PlaneWaveSequence, Probe
 from fpcore.geometry import cosines
 from fpcore.simulate.confocal_notch import ConfocalNotch
+from fpcore.simulate.diffuse import DiffuseBackground
+from fpcore.simulate.medium import ScatteringLayer
+from fpcore.simulate.reciprocity import ElementReciprocity
+from fpcore.simulate.waves import Band, TimeWindow
 
 C0 = 1500.0
 
@@ -94,40 +99,36 @@ def test_the_notch_refuses_a_wrong_shape_and_a_single_frequency() -> None:
         ConfocalNotch(s_out, spacings, sines, freqs, C0, 2, (40e-3, 5e-3))
 
 
+def _small_background(**layer_kw: object) -> tuple[DiffuseBackground, Probe, PlaneWaveSequence]:
+    """A small 2-D rig's background (32 elements, 7 transmits) with the diffusion envelope, the beads' speckle and
+    `layer_kw` (the focal return, the notch, cbs…)."""
+    probe = Probe.linear(32, 0.34e-3, 2.2e6, 0.8e6)
+    seq = PlaneWaveSequence.uniform_sines(7, 0.2)
+    win = TimeWindow.covering(10.4e6, 14e-6, 30e-6, guard=10e-6)
+    lay = ScatteringLayer(
+        z_surface=10e-3, ls=1.8e-3, la=8e-3, envelope="diffusion", single_scattering="field", **layer_kw
+    )
+    bg = DiffuseBackground(
+        lay,
+        probe.positions,
+        seq.sines,
+        win,
+        Band(1.8e6, 2.6e6),
+        1500.0,
+        2,
+        0.5 * probe.aperture[0],
+        np.random.default_rng(5),
+    )
+    return bg, probe, seq
+
+
 def test_the_focal_return_draws_the_gaussian_field_out_of_the_confocal_subspace() -> None:
     """docs/design.md §6.6: with confocal_notch the background holds a notch taken on the array's elements; its Gaussian
     field carries a share of its energy in the confocal subspace there before the notch and next to none after,
     with the same energy."""
-    from fpcore.acquisition import PlaneWaveSequence, Probe
-    from fpcore.simulate.diffuse import DiffuseBackground
-    from fpcore.simulate.medium import ScatteringLayer
-    from fpcore.simulate.waves import Band, TimeWindow
-
-    probe = Probe.linear(32, 0.34e-3, 2.2e6, 0.8e6)
-    seq = PlaneWaveSequence.uniform_sines(7, 0.2)
-    win = TimeWindow.covering(10.4e6, 14e-6, 30e-6, guard=10e-6)
 
     def build(fr: bool, notch: bool = True) -> DiffuseBackground:
-        lay = ScatteringLayer(
-            z_surface=10e-3,
-            ls=1.8e-3,
-            la=8e-3,
-            envelope="diffusion",
-            single_scattering="field",
-            focal_return=fr,
-            confocal_notch=notch,
-        )
-        return DiffuseBackground(
-            lay,
-            probe.positions,
-            seq.sines,
-            win,
-            Band(1.8e6, 2.6e6),
-            1500.0,
-            2,
-            0.5 * probe.aperture[0],
-            np.random.default_rng(5),
-        )
+        return _small_background(focal_return=fr, confocal_notch=notch)[0]
 
     with pytest.raises(ValueError, match="confocal_notch: expected focal_return=True"):
         build(False)
@@ -163,7 +164,6 @@ def test_the_focal_return_draws_the_gaussian_field_out_of_the_confocal_subspace(
 def test_the_plane_waves_adjoint_is_the_adjoint_of_their_projection_onto_the_elements(matrix: bool) -> None:
     """⟨M, E aw⟩ = ⟨E^H M, aw⟩ for `project_plane_waves` (E) and `adjoint_plane_waves`, on a linear array (the
     frequency recursion) and a matrix array on a masked square grid of sines (the separable path)."""
-    from fpcore.acquisition import Probe
     from fpcore.simulate.diffuse import adjoint_plane_waves, project_plane_waves
 
     rng = np.random.default_rng(1)
@@ -267,44 +267,9 @@ def test_the_notched_field_keeps_the_measured_reciprocity() -> None:
     beams' antisymmetric remainder a larger share; with cbs the notched field is projected back onto the measured
     reciprocity (`reciprocity.ElementReciprocity`) before its envelope is restored, so its symmetry through the
     transmits, |Σ S S^T*|/Σ|S|² off the diagonal, is that of a reciprocal medium after the time gain too."""
-    from fpcore.acquisition import PlaneWaveSequence, Probe
-    from fpcore.simulate.diffuse import DiffuseBackground
-    from fpcore.simulate.medium import ScatteringLayer
-    from fpcore.simulate.reciprocity import ElementReciprocity
-    from fpcore.simulate.waves import Band, TimeWindow
-
-    probe = Probe.linear(32, 0.34e-3, 2.2e6, 0.8e6)
-    seq = PlaneWaveSequence.uniform_sines(7, 0.2)
-    win = TimeWindow.covering(10.4e6, 14e-6, 30e-6, guard=10e-6)
-    lay = ScatteringLayer(
-        z_surface=10e-3,
-        ls=1.8e-3,
-        la=8e-3,
-        envelope="diffusion",
-        single_scattering="field",
-        cbs=True,
-        angular="halo",
-        focal_return=True,
-        confocal_notch=True,
-    )
-    bg = DiffuseBackground(
-        lay,
-        probe.positions,
-        seq.sines,
-        win,
-        Band(1.8e6, 2.6e6),
-        1500.0,
-        2,
-        0.5 * probe.aperture[0],
-        np.random.default_rng(5),
-    )
+    bg, probe, seq = _small_background(cbs=True, angular="halo", focal_return=True, confocal_notch=True)
     assert bg._notch is not None and isinstance(bg._notch.constraint, ElementReciprocity)
-    measure = ElementReciprocity(probe.positions, seq.sines, bg.freqs, 1500.0)
-
-    def symmetry(m: np.ndarray) -> float:
-        s = measure.measured(m)
-        off = ~np.eye(s.shape[1], dtype=bool)
-        return float(abs(np.sum((s * np.conj(np.swapaxes(s, 1, 2)))[:, off])) / np.sum(np.abs(s[:, off]) ** 2))
+    symmetry = ElementReciprocity(probe.positions, seq.sines, bg.freqs, 1500.0).symmetry
 
     bg._advance()
     aw = bg.multiple_spectrum() * bg.weights[:, None, None]

@@ -254,11 +254,6 @@ def test_measured_reciprocity_makes_both_orders_symmetric_through_the_transmits_
     the transmits measure them (without it the beams' independent sidelobes and the speckle's beam model leave a
     few % out), with their time envelopes kept in 2 µs gates from the surface echo on."""
 
-    def symmetry(proj: ElementReciprocity, m: np.ndarray) -> float:
-        s = proj.measured(m)
-        off = ~np.eye(s.shape[1], dtype=bool)
-        return float(abs(np.sum((s * np.conj(np.swapaxes(s, 1, 2)))[:, off])) / np.sum(np.abs(s[:, off]) ** 2))
-
     def gated(m: np.ndarray, bg: DiffuseBackground) -> np.ndarray:
         t = np.fft.ifft(m * np.hanning(m.shape[0] + 2)[1:-1, None, None], n=bg.n_bb, axis=0)
         gate = round(2e-6 / bg.dt)
@@ -271,7 +266,7 @@ def test_measured_reciprocity_makes_both_orders_symmetric_through_the_transmits_
     before, after = plain.next_orders(), kept.next_orders()
     for b, a in zip(before, after, strict=True):
         assert b is not None and a is not None
-        assert symmetry(proj, b) < 0.99 and symmetry(proj, a) > 0.999
+        assert proj.symmetry(b) < 0.99 and proj.symmetry(a) > 0.999
         e_b, e_a = gated(b, plain), gated(a, kept)
         starts = (np.arange(e_b.size) * round(2e-6 / plain.dt) * plain.dt + win.t0) % win.period
         lit = (starts >= 2 * 10e-3 / C0) & (e_b > 1e-2 * e_b.max())

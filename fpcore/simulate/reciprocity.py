@@ -219,6 +219,13 @@ class ElementReciprocity:
         """S(θ', θ) of (R1) per frequency: (N_f, N_θ, N_θ)."""
         return np.matmul(np.swapaxes(self._phi, 1, 2), m.astype(np.complex128) / self._c[None, None, :])
 
+    def symmetry(self, m: np.ndarray) -> float:
+        """|Σ S Sᵀ*| / Σ |S|² over the off-diagonal pairs and the frequencies (1: reciprocal as measured; ≈ 0:
+        independent), the bench's figure (`background_metrics.cbs_enhancement`) on the transmits' own mirrors."""
+        s = self.measured(m)
+        off = ~np.eye(s.shape[1], dtype=bool)
+        return float(abs(np.sum((s * np.conj(np.swapaxes(s, 1, 2)))[:, off])) / np.sum(np.abs(s[:, off]) ** 2))
+
     def __call__(self, m: np.ndarray) -> np.ndarray:
         """M projected onto the fields satisfying (R1) (module doc, R2), complex64 of M's shape."""
         if m.shape != self.shape:
