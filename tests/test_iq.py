@@ -14,6 +14,7 @@ import fpcore
 from fpcore import PlaneWaveSequence, Probe
 from fpcore.born import born_points
 from fpcore.io import UFFError, iq_to_rf, read_uff, rf_to_iq, rf_upsampling, write_uff
+from fpcore.io.iq import MAX_RF_UPSAMPLING
 
 PROBE = Probe.linear(32, 0.3e-3, 2.5e6, 1.5e6)
 SEQ = PlaneWaveSequence.from_angles(np.linspace(-10, 10, 5))
@@ -50,6 +51,11 @@ def test_upsampling_factor() -> None:
     assert rf_upsampling(5e6, 2.5e6) * 5e6 > 2 * (2.5e6 + 2.5e6)
     with pytest.raises(ValueError, match="modulation_frequency"):
         rf_upsampling(5e6, -1.0)
+    # a misread header: 2 f_m/fs overflowed to inf (found by tests/test_fuzz_inputs.py) or asks for an absurd RF rate
+    assert rf_upsampling(1.0, 0.5 * (MAX_RF_UPSAMPLING - 1) - 1e-6) == MAX_RF_UPSAMPLING
+    for f_mod in (0.5 * (MAX_RF_UPSAMPLING - 1) * 20e6, 8.98846567431158e307):
+        with pytest.raises(ValueError, match="modulation_frequency: expected below"):
+            rf_upsampling(20e6, f_mod)
 
 
 def _marker(centre: np.ndarray) -> fpcore.Acquisition:

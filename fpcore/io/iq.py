@@ -30,6 +30,10 @@ import scipy.fft as sfft
 
 __all__ = ["iq_to_rf", "rf_to_iq", "rf_upsampling"]
 
+#: The largest RF upsampling factor M accepted: the RF record holds M times the IQ samples, and an IQ record whose
+#: modulation frequency is hundreds of times its sampling rate is a misread header, not an acquisition.
+MAX_RF_UPSAMPLING = 256
+
 
 def rf_upsampling(fs: float, f_mod: float) -> int:
     """Smallest integer M with M·fs > 2 (f_m + fs/2) plus one sample of margin: the RF of an IQ record
@@ -39,7 +43,15 @@ def rf_upsampling(fs: float, f_mod: float) -> int:
         raise ValueError(f"sampling_frequency: expected a positive frequency in Hz, got {fs}")
     if not (f_mod >= 0 and math.isfinite(f_mod)):
         raise ValueError(f"modulation_frequency: expected a frequency >= 0 Hz, got {f_mod}")
-    return int(math.floor(2.0 * f_mod / fs + 1.0)) + 1 if f_mod > 0 else 1
+    if f_mod == 0:
+        return 1
+    ratio = f_mod / fs
+    if not ratio < 0.5 * (MAX_RF_UPSAMPLING - 1):  # M = ⌊2 f_m/fs + 1⌋ + 1 ≤ MAX_RF_UPSAMPLING
+        raise ValueError(
+            f"modulation_frequency: expected below {0.5 * (MAX_RF_UPSAMPLING - 1):g} × the sampling frequency "
+            f"({fs:g} Hz; an RF rate of at most {MAX_RF_UPSAMPLING} × it), got {f_mod:g} Hz"
+        )
+    return int(math.floor(2.0 * ratio + 1.0)) + 1
 
 
 def _resample(x: np.ndarray, m: int) -> np.ndarray:
