@@ -397,7 +397,7 @@ class DiffuseBackground:
         self._reciprocity: ElementReciprocity | None = None
         if layer.cbs and (layer.measured_reciprocity or layer.confocal_notch):
             self._reciprocity = ElementReciprocity(el, s, self.freqs, c0)
-        self._envelope_width = max(1, round(NOTCH_ENVELOPE_WINDOW / self.dt))
+        self._envelope_width = max(1, round(KEPT_ENVELOPE_WINDOW / self.dt))
         if layer.confocal_notch:
             # from the surface to a normally incident echo at the period's end
             z_range = (layer.z_surface, 0.5 * c0 * (window.t0 + window.period))
@@ -600,6 +600,13 @@ class DiffuseBackground:
         else:
             self._advance()
 
+    def _reciprocal(self, m: np.ndarray) -> np.ndarray:
+        """One order on the elements (N_f, N_u, N_θ) projected onto the measured reciprocity (R1–R2) with its time
+        envelope kept (`keep_envelope`: only its place in the data space changes); as it is without the projection."""
+        if self._reciprocity is None:
+            return m
+        return keep_envelope(m, self._reciprocity(m), 0, self.n_bb, self._envelope_width)
+
     def next(self) -> np.ndarray:
         """Advance one frame and return V (N_f, N_u, N_θ) complex64 on the band bins: `next_orders` summed.
 
@@ -615,19 +622,13 @@ class DiffuseBackground:
             return self._frozen
         self._advance()
         aw = self.multiple_spectrum() * self.weights[:, None, None]
-        if self._notch is not None:
-            multiple = self._notch(aw)
-        elif self._reciprocity is not None:  # its time envelope kept (`keep_envelope`): only its place changes
-            on_elements = self._project(aw)
-            multiple = keep_envelope(on_elements, self._reciprocity(on_elements), 0, self.n_bb, self._envelope_width)
-        else:
-            multiple = self._project(aw)
+        # the notch applies the measured reciprocity itself, before restoring the field's envelope
+        multiple = self._notch(aw) if self._notch is not None else self._reciprocal(self._project(aw))
         single = None
         if self.single is not None:  # on its own, finer grid (single_scattering.output_grid)
             ss = self.single
             single = project_plane_waves(ss.spectrum(), self.freqs, self.c0, self.elements, ss.s_out, ss.axes, ss.keep)
-            if self._reciprocity is not None:  # the first order's model (its beams) is not exactly reciprocal either
-                single = keep_envelope(single, self._reciprocity(single), 0, self.n_bb, self._envelope_width)
+            single = self._reciprocal(single)  # the first order's model (its beams) is not exactly reciprocal either
         if self.g1 is None:
             self._frozen, self.state, self.block_state = (multiple, single), None, None
         return multiple, single
@@ -635,7 +636,7 @@ class DiffuseBackground:
 
 #: The confocal notch, and the measured reciprocity without it, keep the Gaussian field's energy per time, averaged
 #: over this window (s; about a pulse length: the transport envelope varies over microseconds; docs/design.md §6.6).
-NOTCH_ENVELOPE_WINDOW = 0.5e-6
+KEPT_ENVELOPE_WINDOW = 0.5e-6
 
 #: Walks drawn for the focal return's depth profile (`focal_return_tables`), from a fixed seed: a table of the
 #: rig, not a draw of the frame (its Monte-Carlo scatter is a few % per depth cell; docs/design.md §6.6).

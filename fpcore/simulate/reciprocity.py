@@ -215,9 +215,16 @@ class ElementReciprocity:
         self._inv_sum = np.where(resolved, 1.0 / np.where(resolved, pair, 1.0), 0.0)  # 1/(λ_i + λ_j)
         self._c = cosines(si)
 
+    def _weighted(self, m: np.ndarray) -> np.ndarray:
+        """W = M/c_θ (complex128), the field the projection is orthogonal in."""
+        return m.astype(np.complex128) / self._c[None, None, :]
+
+    def _measured(self, w: np.ndarray) -> np.ndarray:
+        return np.matmul(np.swapaxes(self._phi, 1, 2), w)
+
     def measured(self, m: np.ndarray) -> np.ndarray:
         """S(θ', θ) of (R1) per frequency: (N_f, N_θ, N_θ)."""
-        return np.matmul(np.swapaxes(self._phi, 1, 2), m.astype(np.complex128) / self._c[None, None, :])
+        return self._measured(self._weighted(m))
 
     def symmetry(self, m: np.ndarray) -> float:
         """|Σ S Sᵀ*| / Σ |S|² over the off-diagonal pairs and the frequencies (1: reciprocal as measured; ≈ 0:
@@ -230,10 +237,11 @@ class ElementReciprocity:
         """M projected onto the fields satisfying (R1) (module doc, R2), complex64 of M's shape."""
         if m.shape != self.shape:
             raise ValueError(f"m: expected shape {self.shape} (N_f, N_u, N_θ), got {m.shape}")
-        s = self.measured(m)
+        w = self._weighted(m)
+        s = self._measured(w)
         rhs = -(s - np.swapaxes(s, 1, 2))  # G Y + Y Gᵀ = −(S − Sᵀ)
         uh = np.conj(np.swapaxes(self._u, 1, 2))
         z = np.matmul(np.matmul(uh, rhs), np.conj(self._u)) * self._inv_sum  # Z = U^H C Ū / (λ_i + λ_j)
         y = np.matmul(np.matmul(self._u, z), np.swapaxes(self._u, 1, 2))  # Y = U Z Uᵀ
-        w = m.astype(np.complex128) / self._c[None, None, :] + np.matmul(np.conj(self._phi), y)
+        w += np.matmul(np.conj(self._phi), y)  # W − its component along Φ̄ Y
         return np.ascontiguousarray(w * self._c[None, None, :], dtype=np.complex64)
