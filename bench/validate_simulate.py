@@ -4,6 +4,7 @@
     .venv/bin/python bench/validate_simulate.py --full     # + the headline on full frames (slow)
     .venv/bin/python bench/validate_simulate.py --headline-only --layer focal_return=True --layer confocal_notch=True
                                     # the quick headline on a background option (docs/design.md §6.6), ~6 min
+    .venv/bin/python bench/validate_simulate.py --headline-only --scenario sinking-cylinder   # its 2-D analogue
 
 Sections:
  1. Faran coefficients: energy conservation, rigid limit, low-frequency (equivalent fluid) limit.
@@ -314,13 +315,15 @@ def reverberation_n_t(cal: fpcore.Acquisition, band: tuple[float, float]) -> flo
     return (band[1] - band[0]) * (above[-1] - int(np.argmax(env))) / cal.fs
 
 
-def headline(quick: bool, frames: list[int], configs: dict[str, dict] | None = None) -> list[dict]:
-    """The paper's figures, measured (issue: the paper's regime). Per configuration, sphere and frame: C_I (the
+def headline(
+    quick: bool, frames: list[int], configs: dict[str, dict] | None = None, scenario: str = "sinking-sphere"
+) -> list[dict]:
+    """The paper's figures, measured (issue: the paper's regime). Per configuration, target and frame: C_I (the
     target's own echo — simulated alone through the medium — at its brightest point over the fog's mean confocal
     intensity at that depth), C_γ at the truth with and without the angular filter, N_S, N_T (participation
     width and the paper's Δf·Δt_{−20 dB}), G = N_S·N_T, the measured gain C_γ/C_I, and the detector's most
     significant peak (fpcore.locate on the whole record: distance to the truth, calibrated PFA) against the
-    Cramér–Rao radius."""
+    Cramér–Rao radius. `scenario`: the sinking spheres (3-D) or their 2-D analogue, the sinking cylinders."""
     configs = configs or {
         "paper (default)": {},
         "paper's stated positions": {"sink": sim.scenarios.PAPER_POSITIONS[0], "sphere2_depth": 7e-3},
@@ -329,10 +332,10 @@ def headline(quick: bool, frames: list[int], configs: dict[str, dict] | None = N
         "legacy": {"conventions": "legacy"},
     }
     size = "quick" if quick else "full"
-    section(f"7. The paper's regime, measured ({size} sinking-sphere; paper: C_I 1/150 and 1/50, C_γ 6–7, G 640/380)")
+    section(f"7. The paper's regime, measured ({size} {scenario}; paper: C_I 1/150 and 1/50, C_γ 6–7, G 640/380)")
     rows = []
     for label, kw in configs.items():
-        sc = sim.scenario("sinking-sphere", quick=quick, seed=0, **kw)
+        sc = sim.scenario(scenario, quick=quick, seed=0, **kw)
         fog = sc.without_targets()
         first = sc.frame(0)
         grid = fpcore.Grid.for_acquisition(first, sc.band)  # the default grid: the record's whole time window
@@ -358,11 +361,12 @@ def headline(quick: bool, frames: list[int], configs: dict[str, dict] | None = N
             pw = imager.plane_waves(acq)
             conf_fog = imager_c.confocal(imager_c.plane_waves(fog.frame(i)))
             for tg in acq.ground_truth.targets or []:
-                r, a = tg.position, 0.5 * tg.diameter
+                r, a = np.asarray(tg.position, float), 0.5 * tg.diameter
+                r_grid = r[[0, 2]] if sc.dim == 2 else r  # on the grid's axes: (x, z) in 2-D
                 conf_t = imager_c.confocal(imager_c.plane_waves(sc.target_echo(tg.name, i)))
-                near = sum((m - c) ** 2 for m, c in zip(mesh, r, strict=True)) < (a + 1.5e-3) ** 2
+                near = sum((m - c) ** 2 for m, c in zip(mesh, r_grid, strict=True)) < (a + 1.5e-3) ** 2
                 ib = np.unravel_index(np.argmax(np.where(near, conf_t, 0.0)), conf_t.shape)
-                c_i = float(conf_t[ib] / conf_fog[np.abs(mesh[2] - grid_c.z[ib[2]]) < 0.5e-3].mean())
+                c_i = float(conf_t[ib] / conf_fog[np.abs(mesh[-1] - grid_c.z[ib[-1]]) < 0.5e-3].mean())
                 loc = fpcore.locate(imager, acq, fps[tg.name], level, pw=pw, max_pfa=None)
                 det = loc.detections[0]
                 cg = contrasts(loc.gamma, grid, r, a)[0]
@@ -497,6 +501,12 @@ def main() -> None:
         "--layer", action="append", default=[], help="KEY=VALUE: the scenario layer's option (runs the headline only)"
     )
     ap.add_argument("--headline-only", action="store_true", help="only the quick headline's paper row (frames 0, 31)")
+    ap.add_argument(
+        "--scenario",
+        default="sinking-sphere",
+        choices=("sinking-sphere", "sinking-cylinder"),
+        help="the headline's scenario with --headline-only or --layer (sinking-cylinder: its 2-D analogue)",
+    )
     args = ap.parse_args()
     t0 = time.perf_counter()
     if args.layer or args.headline_only:
@@ -504,9 +514,9 @@ def main() -> None:
 
         kw = parse_layer(args.layer)
         label = "paper" + "".join(f", {k}={v}" for k, v in kw.items())
-        headline(True, [0, 31], {label: kw})
+        headline(True, [0, 31], {label: kw}, args.scenario)
         if args.full:
-            headline(False, [0], {label: kw})
+            headline(False, [0], {label: kw}, args.scenario)
         print(f"\n(total {time.perf_counter() - t0:.0f} s)")
         return
     faran_checks()

@@ -219,6 +219,14 @@ def test_sinking_cylinder_is_the_2d_analogue() -> None:
     legacy = scenario("sinking-cylinder", quick=True, n_frames=12, conventions="legacy")
     assert legacy.truth(0)["targets"][0]["depth_below_surface_m"] == pytest.approx(8e-3)
     assert legacy.calibration("cylinder1").truth["r0_m"] == legacy.truth(0)["targets"][0]["position_m"]
+    # In 2-D the paper's layer has the focal return and the notch (all four figures against Foldy–Lax, docs/design.md
+    # §6.6); the spheres' layer and the legacy rig do not, and an override turns them off.
+    assert sc.layer is not None and sc.layer.focal_return and sc.layer.confocal_notch
+    assert legacy.layer is not None and not legacy.layer.focal_return
+    sphere = scenario("sinking-sphere", quick=True, n_frames=2).layer
+    assert sphere is not None and not sphere.focal_return
+    off = scenario("sinking-cylinder", quick=True, n_frames=2, focal_return=False, confocal_notch=False).layer
+    assert off is not None and not off.focal_return and not off.confocal_notch
     shallow = scenario("sinking-cylinder", quick=True, n_frames=12, depth_ls=2.0)
     assert shallow.truth(0)["targets"][1]["depth_below_surface_m"] == pytest.approx(3.6e-3)
     with pytest.raises(ValueError, match="depth_ls"):
