@@ -221,6 +221,8 @@ def test_the_focal_return_option_is_refused_without_the_beads_grid_or_a_focus() 
 
     with pytest.raises(ValueError, match="focal_return"):
         ScatteringLayer(z_surface=10e-3, ls=1.8e-3, focal_return=True)  # single_scattering="envelope"
+    with pytest.raises(ValueError, match="focal_return_shallow: expected focal_return=True"):
+        ScatteringLayer(z_surface=10e-3, ls=1.8e-3, single_scattering="field", focal_return_shallow=True)
     probe = Probe.linear(16, 0.34e-3, 2.2e6, 0.8e6)
     lay = ScatteringLayer(z_surface=10e-3, ls=1.8e-3, la=8e-3, single_scattering="field", focal_return=True)
     win = TimeWindow.covering(10.4e6, 16e-6, 30e-6, guard=10e-6)
@@ -245,9 +247,15 @@ def test_the_focal_return_draws_its_variance_and_takes_its_energy_from_the_gauss
     win = TimeWindow.covering(10.4e6, 14e-6, 30e-6, guard=10e-6)
     band = Band(1.8e6, 2.6e6)
 
-    def build(fr: bool) -> DiffuseBackground:
+    def build(fr: bool, shallow: bool = False) -> DiffuseBackground:
         lay = ScatteringLayer(
-            z_surface=10e-3, ls=1.8e-3, la=8e-3, envelope="diffusion", single_scattering="field", focal_return=fr
+            z_surface=10e-3,
+            ls=1.8e-3,
+            la=8e-3,
+            envelope="diffusion",
+            single_scattering="field",
+            focal_return=fr,
+            focal_return_shallow=shallow,
         )
         return DiffuseBackground(
             lay, probe.positions, seq.sines, win, band, 1500.0, 2, 0.5 * probe.aperture[0], np.random.default_rng(5)
@@ -266,6 +274,13 @@ def test_the_focal_return_draws_its_variance_and_takes_its_energy_from_the_gauss
     assert e_fr < e_plain
     multiple, single = with_fr.next_orders()
     assert single is not None and np.all(np.isfinite(multiple)) and np.all(np.isfinite(single))
+    # focal_return_shallow: the focal return on the beads' own grid only (its depths as without a focal return), the
+    # Gaussian field keeping the deeper paths' energy (more than with the whole record's grid, less than without)
+    shallow = build(True, shallow=True)
+    assert shallow.single is not None and plain.single is not None and shallow.single._fr_var is not None
+    assert shallow.single.nz == plain.single.nz < ss.nz and shallow.single._fr_var.max() > 0
+    e_shallow = sum(float(np.sum(e**2)) for e in shallow.envelopes)
+    assert e_fr < e_shallow < e_plain
 
 
 def test_without_the_beads_the_grid_carries_the_focal_return_alone() -> None:
@@ -427,3 +442,16 @@ def test_the_compiled_overlap_integral_is_the_tables(monkeypatch) -> None:
     monkeypatch.setattr(P, "nb", None)
     tables = P._overlap_integral(w_f, rx_f, w_g, rx_g, k, pairs)
     assert np.abs(compiled - tables).max() < 1e-9 * np.abs(tables).max()
+
+
+def test_a_path_beyond_the_grid_keeps_its_energy_in_the_gaussian_field() -> None:
+    """(F3) moves a path's point-like share out of the Gaussian field only where the grid draws its focal return: a
+    path whose apparent depth lies below the grid's last depth (a grid cut at the beads' depth, `focal_return_shallow`)
+    leaves ν empty and κ = 1 at its length, so its energy is not lost."""
+    ls = 1.8e-3
+    args = (np.array([2.2e6]), np.array([ls]), 8e-3, 1500.0, np.array([0.05] * 2), np.array([1e-3] * 2), 5e-3)
+    ages = np.arange(0, 40) * 0.5e-3
+    deep_var, deep_kept, _ = P.focal_return(_one_path(0.0), np.arange(0, 40) * 0.25e-3, ages, *args)
+    assert deep_var.max() > 0 and deep_kept.min() < 0.01  # drawn: its share moved (test above)
+    cut_var, cut_kept, _ = P.focal_return(_one_path(0.0), np.arange(0, 8) * 0.25e-3, ages, *args)  # to 1.75 mm < 3 mm
+    assert cut_var.max() == 0 and np.all(cut_kept == 1)

@@ -96,6 +96,8 @@ class ScatteringLayer:
     grid at their apparent depth (`paths.focal_return_variance`, docs/design.md §6.6; needs single_scattering="field");
     confocal_notch: with the focal return, the Gaussian field drawn out of the confocal subspace on the array's
     elements, where the focal return already counts every path's share (`confocal_notch`, F4; docs/design.md §6.6);
+    focal_return_shallow: with the focal return, draw it only down to the beads' own depth (their echo down by e^{−12};
+    docs/design.md §6.6), the deeper orders left whole in the Gaussian field — no grid to the record's end;
     measured_reciprocity: with cbs, the background (both orders) projected onto the fields whose element-basis matrix
     is symmetric as the transmits measure it (`reciprocity.ElementReciprocity`, R1–R2; default since 2026-12-06,
     False keeps the earlier background; always on with the notch).
@@ -124,6 +126,7 @@ class ScatteringLayer:
     focal_return: bool = False
     confocal_notch: bool = False
     measured_reciprocity: bool = True
+    focal_return_shallow: bool = False
 
     def __post_init__(self) -> None:
         if self.angular not in ("uniform", "halo"):
@@ -136,6 +139,8 @@ class ScatteringLayer:
             raise ValueError(
                 "focal_return: expected single_scattering='field' as well (it is drawn on the beads' grid)"
             )
+        if self.focal_return_shallow and not self.focal_return:
+            raise ValueError("focal_return_shallow: expected focal_return=True as well (it bounds the focal return)")
         if self.confocal_notch and not self.focal_return:
             raise ValueError(
                 "confocal_notch: expected focal_return=True as well (the notch leaves the focus to the focal return)"

@@ -471,7 +471,8 @@ def focal_return(
             weight[sel] = nt2 * energy[sel] * _between(f[m], anchors, w_anchor) * paths.start_area / window
         var[m] = np.bincount(cell[in_grid], weights=weight[in_grid], minlength=dep.size) / h
         total = np.bincount(age[in_ages], weights=energy[in_ages], minlength=s_grid.size)
-        moved = np.bincount(age[in_ages], weights=(energy * ov / 2)[in_ages], minlength=s_grid.size)
+        drawn = in_ages & in_grid  # a path moves its share only where the grid draws it
+        moved = np.bincount(age[drawn], weights=(energy * ov / 2)[drawn], minlength=s_grid.size)
         kept[m] = np.where(total > 0, np.clip(1.0 - moved / np.maximum(total, 1e-300), 0.0, 1.0), 1.0)
     return var, kept, light
 
