@@ -332,7 +332,8 @@ class DiffuseBackground:
             ss_rng = _beads_stream(rng)
             t_end = window.t0 + window.period
             # Deep enough that the echo at the band's lower −6 dB edge has fallen by e^{−12} in intensity; with the
-            # focal return, to the record's end (its apparent depths reach it: docs/design.md §6.6).
+            # focal return, to the record's end (its apparent depths reach it: docs/design.md §6.6), unless it is
+            # drawn on the beads' own depths only (focal_return_shallow).
             depth_max = max(min(0.5 * c0 * t_end - layer.z_surface, 6.0 * float(layer.l_ext_at(band.f_min))), 1e-3)
             if layer.focal_return and not layer.focal_return_shallow:
                 depth_max = max(depth_max, 0.5 * c0 * (window.t0 + window.duration) - layer.z_surface)

@@ -421,6 +421,7 @@ def focal_return(
     in_grid = (cell >= 0) & (cell < dep.size)
     age = np.floor((d1 + dn + paths.length - s_grid[0]) / hs + 0.5).astype(np.int64)
     in_ages = (age >= 0) & (age < s_grid.size)
+    drawn = in_ages & in_grid  # (F3): a path moves its share out of the Gaussian field only where the grid draws it
     delta = paths.end[:, :axes] - paths.start[w, :axes]
     per_area = paths.start_weight[w] / paths.start_area
     span = np.broadcast_to(np.asarray(transmit_span, dtype=np.float64), (axes,))
@@ -471,7 +472,6 @@ def focal_return(
             weight[sel] = nt2 * energy[sel] * _between(f[m], anchors, w_anchor) * paths.start_area / window
         var[m] = np.bincount(cell[in_grid], weights=weight[in_grid], minlength=dep.size) / h
         total = np.bincount(age[in_ages], weights=energy[in_ages], minlength=s_grid.size)
-        drawn = in_ages & in_grid  # a path moves its share only where the grid draws it
         moved = np.bincount(age[drawn], weights=(energy * ov / 2)[drawn], minlength=s_grid.size)
         kept[m] = np.where(total > 0, np.clip(1.0 - moved / np.maximum(total, 1e-300), 0.0, 1.0), 1.0)
     return var, kept, light
