@@ -275,13 +275,11 @@ def _receive(x_end: np.ndarray, r_end: np.ndarray, r_focus: np.ndarray, k: float
 
 
 def _pair_differences(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The distinct differences s − s' over the pairs of transmits (N_Δ,) and the (N_s², N_Δ) 0/1 matrix that sums
-    each pair's term into its difference (`_overlap_integral`)."""
+    """The distinct differences s − s' over the pairs of transmits (N_Δ,) and, per pair (i, j), the index of its
+    difference s_i − s_j among them (N_s, N_s) (`_overlap_integral` sums each pair's term into its difference)."""
     scale = max(float(np.ptp(s)), 1e-12)
     uniq, inv = np.unique(np.round((s[:, None] - s[None, :]) / scale, 9), return_inverse=True)
-    gather = np.zeros((inv.size, uniq.size))
-    gather[np.arange(inv.size), inv.ravel()] = 1.0
-    return uniq * scale, gather
+    return uniq * scale, np.ascontiguousarray(inv.reshape(s.size, s.size), dtype=np.int64)
 
 
 def _overlap_integral(
@@ -290,14 +288,13 @@ def _overlap_integral(
     """∫ F conj(G) dx over the focus position, F = Σ_s w_f[s] e^{iksx} × receive_f(x) (and G), in closed form: a
     Gaussian integral per pair of transmits, whose exponent depends on the pair through s − s' only (`pairs`:
     `_pair_differences`)."""
-    d, gather = pairs
+    d, lag = pairs
     a = rx_f[0] + np.conj(rx_g[0])
     b = rx_f[1] + np.conj(rx_g[1])
     c = rx_f[2] + np.conj(rx_g[2])
     if nb is not None:  # the same sums, compiled: no (N, N_s²) table of pairs (3.5× faster on the 2-D rig)
         n = a.size
         out = np.empty(n, dtype=np.complex128)
-        lag = np.ascontiguousarray(np.argmax(gather, axis=1).reshape(w_f.shape[1], w_g.shape[1]))  # pair → its s − s'
         args = (*(np.ascontiguousarray(x, dtype=np.complex128) for x in (w_f, w_g, a, b, c)), lag, 1j * k * d)
         parts = max(1, min(n // 2000, 4 * default_threads()))
 
@@ -309,6 +306,7 @@ def _overlap_integral(
     q = b[:, None] + 1j * k * d[None, :]
     e = np.exp(q**2 / (4 * a[:, None]) + c[:, None])  # (N, N_Δ)
     pair = (w_f[:, :, None] * np.conj(w_g)[:, None, :]).reshape(w_f.shape[0], -1)
+    gather = np.eye(d.size)[lag.ravel()]  # (N_s², N_Δ): each pair's term into its difference
     return np.sqrt(np.pi / a) * np.sum((pair @ gather) * e, axis=1)
 
 
