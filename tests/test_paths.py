@@ -423,8 +423,33 @@ def test_with_the_rigs_foci_the_focal_return_is_lit_at_its_ends_depth() -> None:
     j = int(np.argmax(var[0]))
     assert depths[j] == pytest.approx(2e-3) and light[j] == pytest.approx(2e-3)
     assert np.count_nonzero(var[0]) == 1
-    window = (2 * 0.5e-3) ** 2  # the aperture's window (1 mm) inside the first scatterings' square (1 mm)
-    assert var[0, j] == pytest.approx(var_f2[0, j] * 1e-6 / window, rel=1e-3)
+    assert var[0, j] == pytest.approx(var_f2[0, j], rel=1e-3)  # both per unit area of first scatterings
+
+
+def test_the_rigs_focal_return_of_a_path_does_not_depend_on_where_it_lies_laterally() -> None:
+    """(F2′) in a medium invariant across: a path and the same path 2 mm and 1 mm off the axis give the same variance,
+    though the steered beams light the two differently — the grid lights the focal return where it lies, so W′ takes
+    each path centred on the axis (docs/design.md §6.6; taken as it lay, the beams darkened an off-axis path twice)."""
+
+    def path(dx: float, dy: float) -> P.Paths:
+        first, last = np.array([[dx, dy, 7e-3]]), np.array([[dx + 0.5e-3, dy, 7.5e-3]])
+        return P.Paths(3, first, np.array([0]), last, np.array([2], dtype=np.int32), np.array([2e-3]), 1.8e-3,
+                       np.array([2e-9]), 1e-4)  # fmt: skip
+
+    s1 = np.linspace(-0.2, 0.2, 5)
+    sy, sx = np.meshgrid(s1, s1, indexing="ij")
+    sines = np.stack([sx.ravel(), sy.ravel()], 1)
+    rig = P.FocalRig.from_grid(sines, np.array([5e-3, 5e-3]), 3, np.array([5e-3, 5e-3]), 0.68e-3)  # finite beams
+    assert rig is not None
+    args = (np.arange(0, 40) * 0.25e-3, np.arange(0, 40) * 0.5e-3, np.array([2.2e6]), np.array([1.8e-3]), np.inf)
+    tail = (1500.0, np.array([0.5, 0.5]), np.array([5e-3, 5e-3]), 5e-3, rig)
+    var_axis, kept_axis, light_axis = P.focal_return(path(0.0, 0.0), *args, *tail)
+    var_off, kept_off, light_off = P.focal_return(path(2e-3, 1e-3), *args, *tail)
+    assert var_axis.max() > 0
+    np.testing.assert_allclose(var_off, var_axis, rtol=1e-9)
+    np.testing.assert_allclose(kept_off, kept_axis, rtol=1e-12)
+    assert light_axis is not None and light_off is not None
+    np.testing.assert_allclose(light_off, light_axis)
 
 
 def test_the_compiled_overlap_integral_is_the_tables(monkeypatch) -> None:

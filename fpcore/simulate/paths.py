@@ -399,8 +399,9 @@ def focal_return(
 
     With `rig` (the rig's own transmits and beams, `FocalRig`) the focal return is lit as its ends are: the third
     value is the depth below the surface (N_z,) at which each apparent depth's cell is lit — the energy-weighted mean
-    of its paths' ends' depths — and ν takes W′ (eq. F2′, `discrete_focal_overlap`, its point lit there) over the
-    paths whose midpoint lies under the aperture, per unit area of that window; κ keeps (F2)'s W. None without rig."""
+    of its paths' ends' depths — and ν takes W′ (eq. F2′, `discrete_focal_overlap`, its point lit there) of each path
+    moved across so that its midpoint lies on the axis (the grid lights each point where it lies); κ keeps (F2)'s W.
+    None without rig."""
     dep = np.asarray(depths, dtype=np.float64)
     h = float(dep[1] - dep[0]) if dep.size > 1 else 1.0
     s_grid = np.asarray(lengths, dtype=np.float64)
@@ -438,11 +439,15 @@ def focal_return(
         return per_area * np.exp(log_w - (d1 * q_in + dn * q_out) * (1.0 / lf + 1.0 / la))
 
     light = None
-    if rig is not None:  # the window under the aperture (within the first scatterings' square) where F2′ is taken
-        first, r_app = paths.start[w], z_surface + d_app
-        half = np.minimum(0.5 * rig.aperture, 0.5 * paths.start_area ** (1.0 / axes))
-        sel = in_grid & np.all(np.abs(0.5 * (first[:, :axes] + paths.end[:, :axes])) <= half[None, :], axis=1)
-        window = float(np.prod(2 * half))
+    if rig is not None:
+        # F2′ of each path moved laterally so that its midpoint lies on the axis: the medium is invariant in x, and
+        # the grid's focal return is lit where it lies by the beams themselves (a path off the axis taken as it
+        # lies would be darkened by the beams' walk-off twice, in W′ and on the grid: docs/design.md §6.6).
+        mid = np.zeros((d_app.size, 3))
+        mid[:, :axes] = 0.5 * (paths.start[w, :axes] + paths.end[:, :axes])
+        first, last, r_app = paths.start[w] - mid, paths.end - mid, z_surface + d_app
+        sel = in_grid
+        window = paths.start_area
         e_c = path_energy(float(ls[ls.size // 2]))  # the band centre's weights for the lighting depth
         mass = np.bincount(cell[sel], weights=e_c[sel], minlength=dep.size)
         mean_end = np.bincount(cell[sel], weights=(e_c * 0.5 * (d1 + dn))[sel], minlength=dep.size)
@@ -451,7 +456,7 @@ def focal_return(
         lit_range = z_surface + light[cell[sel]]
         w_anchor = np.stack(
             [
-                discrete_focal_overlap(first[sel], paths.end[sel], r_app[sel], 2 * np.pi * fa / c0, rig, lit_range)
+                discrete_focal_overlap(first[sel], last[sel], r_app[sel], 2 * np.pi * fa / c0, rig, lit_range)
                 for fa in anchors
             ]
         )
@@ -465,7 +470,7 @@ def focal_return(
         ov = focal_overlap(delta, A_W * lam / span, a_r, d_app - d1, d_app - dn, k)
         if rig is None:
             weight = nt2 * energy * ov
-        else:  # F2′: the paths under the aperture, per unit area of that window
+        else:  # F2′: each path centred on the axis, per unit area of first scatterings
             weight = np.zeros_like(energy)
             weight[sel] = nt2 * energy[sel] * _between(f[m], anchors, w_anchor) * paths.start_area / window
         var[m] = np.bincount(cell[in_grid], weights=weight[in_grid], minlength=dep.size) / h
