@@ -23,6 +23,10 @@
         --layer envelope=diffusion --layer cbs=True --layer single_scattering=field --layer angular=halo \
         --layer focal_return=True --layer confocal_notch=True --match-dispersion --model-realisations 24
                                  # the same slab, the focal return with the notch: all four pass (16 min, 2 cores)
+    .venv/bin/python bench/validate_background.py --reference out/bench/fl_reference_3d_deep.npz --slab \
+        --layer envelope=diffusion --layer cbs=True --layer single_scattering=field --layer angular=halo \
+        --layer focal_return=True --layer focal_return_excess=True --match-dispersion --model-realisations 24
+                                 # the same slab, the focal return's excess over the Gaussian field (F5; 15 min)
     .venv/bin/python bench/validate_background.py ... --layer measured_reciprocity=False
                                  # the background before the measured reciprocity (docs/design.md §6.3, R1–R2)
 

@@ -223,6 +223,17 @@ def test_the_focal_return_option_is_refused_without_the_beads_grid_or_a_focus() 
         ScatteringLayer(z_surface=10e-3, ls=1.8e-3, focal_return=True)  # single_scattering="envelope"
     with pytest.raises(ValueError, match="focal_return_shallow: expected focal_return=True"):
         ScatteringLayer(z_surface=10e-3, ls=1.8e-3, single_scattering="field", focal_return_shallow=True)
+    with pytest.raises(ValueError, match="focal_return_excess: expected focal_return=True"):
+        ScatteringLayer(z_surface=10e-3, ls=1.8e-3, single_scattering="field", focal_return_excess=True)
+    with pytest.raises(ValueError, match="focal_return_excess: expected confocal_notch=False"):
+        ScatteringLayer(
+            z_surface=10e-3,
+            ls=1.8e-3,
+            single_scattering="field",
+            focal_return=True,
+            confocal_notch=True,
+            focal_return_excess=True,
+        )
     probe = Probe.linear(16, 0.34e-3, 2.2e6, 0.8e6)
     lay = ScatteringLayer(z_surface=10e-3, ls=1.8e-3, la=8e-3, single_scattering="field", focal_return=True)
     win = TimeWindow.covering(10.4e6, 16e-6, 30e-6, guard=10e-6)
@@ -247,7 +258,7 @@ def test_the_focal_return_draws_its_variance_and_takes_its_energy_from_the_gauss
     win = TimeWindow.covering(10.4e6, 14e-6, 30e-6, guard=10e-6)
     band = Band(1.8e6, 2.6e6)
 
-    def build(fr: bool, shallow: bool = False) -> DiffuseBackground:
+    def build(fr: bool, shallow: bool = False, excess: bool = False) -> DiffuseBackground:
         lay = ScatteringLayer(
             z_surface=10e-3,
             ls=1.8e-3,
@@ -256,6 +267,7 @@ def test_the_focal_return_draws_its_variance_and_takes_its_energy_from_the_gauss
             single_scattering="field",
             focal_return=fr,
             focal_return_shallow=shallow,
+            focal_return_excess=excess,
         )
         return DiffuseBackground(
             lay, probe.positions, seq.sines, win, band, 1500.0, 2, 0.5 * probe.aperture[0], np.random.default_rng(5)
@@ -281,6 +293,20 @@ def test_the_focal_return_draws_its_variance_and_takes_its_energy_from_the_gauss
     assert shallow.single.nz == plain.single.nz < ss.nz and shallow.single._fr_var.max() > 0
     e_shallow = sum(float(np.sum(e**2)) for e in shallow.envelopes)
     assert e_fr < e_shallow < e_plain
+    # focal_return_excess (F5): on the same grid, only the share e ∈ [0, 1] of the focal return that the Gaussian field
+    # does not already carry at the foci — all of it just under the surface, where the field is faint — and the
+    # field keeps the rest of its energy (between the shallow focal return's and none)
+    excess = build(True, excess=True)
+    assert excess.single is not None and excess.single._fr_var is not None and shallow.single._fr_var is not None
+    assert excess.single.nz == shallow.single.nz
+    full_var = shallow.single._fr_var
+    assert np.all(excess.single._fr_var <= full_var * (1 + 1e-12))
+    top = full_var[:, :3] > 0
+    np.testing.assert_allclose(excess.single._fr_var[:, :3][top], full_var[:, :3][top], rtol=0.2)
+    e_excess = sum(float(np.sum(e**2)) for e in excess.envelopes)
+    assert e_shallow <= e_excess <= e_plain
+    multiple, single = excess.next_orders()
+    assert single is not None and np.all(np.isfinite(multiple)) and np.all(np.isfinite(single))
 
 
 def test_without_the_beads_the_grid_carries_the_focal_return_alone() -> None:
@@ -325,6 +351,13 @@ def test_without_the_beads_the_grid_carries_the_focal_return_alone() -> None:
     assert bg.single._fr_light.shape == (bg.single.nz,)
     with pytest.raises(ValueError, match="light: expected a depth per grid depth"):
         bg.single.add_focal_return(bg.single._fr_var, None, np.zeros(3))
+    # scaling it (focal_return_excess): per depth, non-negative, and the next spectrum takes it
+    before = bg.single.spectrum()
+    with pytest.raises(ValueError, match="factor: expected finite, non-negative"):
+        bg.single.scale_focal_return(np.full(bg.single.nz, -1.0))
+    bg.single.draw_beads = False  # the plans are built again after scaling: the focal return alone
+    bg.single.scale_focal_return(np.zeros(bg.single.nz))
+    assert np.abs(before).max() > 0 and not np.any(bg.single.spectrum())
 
 
 def _exact_confocal_ratio(

@@ -103,6 +103,8 @@ class ConfocalNotch:
         depth_extent = min(z_hi - z_lo, depth_period)
         modes.append(2 * int(np.ceil(0.5 * depth_extent / self.hz)))
         z_centre = z_lo + 0.5 * depth_extent
+        #: the grid's depths below the array (its last axis; laterally, mode m lies at m h about the axis)
+        self.depths = z_centre + (np.arange(modes[-1]) - modes[-1] // 2) * self.hz
         self._centre = np.exp(-1j * k[None, None, :] * qz[:, :, None] * z_centre).astype(np.complex64)
         self.modes = tuple(modes)
         self._plans: tuple[finufft.Plan, finufft.Plan] | None = None
@@ -139,6 +141,13 @@ class ConfocalNotch:
         assert self._plans is not None
         v = y if self.sensor is None else self.sensor[1](y)
         return self._plans[1].execute(np.ascontiguousarray((v * self._centre.conj()).ravel(), dtype=np.complex64))
+
+    def adjoint(self, y: np.ndarray) -> np.ndarray:
+        """A^H y on the reflectivity grid (`modes`): the matched filter of a reflectivity, y on the sensor when one
+        is given (N_f, N_u, N_θ), else the plane waves (N_o, N_θ, N_f)."""
+        self.prepare()
+        with self._lock:
+            return self._ah(y).reshape(self.modes)
 
     def fit(self, y: np.ndarray) -> np.ndarray:
         """A ρ̂: the least-squares part of `y` that a reflectivity gives (F4), in y's domain (the plane waves

@@ -304,8 +304,9 @@ class DiffuseBackground:
         smag = np.hypot(so[:, 0], so[:, 1])
         keep = smag < s_cut
         self.s_out = so[keep]
-        self._axes = axes
+        self._axes, self._spacings = axes, spacings
         self._keep = keep
+        self.sines = s
         x = np.clip((smag[keep] / self.s_d - 0.85) / 0.3, 0.0, 1.0)
         c_o = cosines(self.s_out)
         # Taper × the plane-wave (Weyl) weight 1/c_o of a point source's spectrum, so that a reciprocal noise
@@ -328,6 +329,7 @@ class DiffuseBackground:
         # return of the orders ≥ 2 on its grid, whose energy the Gaussian field's envelopes then leave out.
         self.single: SingleScatteringField | None = None
         self._fr_kept: tuple[np.ndarray, np.ndarray] | None = None
+        fr_kept = self._fr_kept
         if layer.single_scattering == "field":
             ss_rng = _beads_stream(rng)
             t_end = window.t0 + window.period
@@ -335,7 +337,7 @@ class DiffuseBackground:
             # focal return, to the record's end (its apparent depths reach it: docs/design.md §6.6), unless it is
             # drawn on the beads' own depths only (focal_return_shallow).
             depth_max = max(min(0.5 * c0 * t_end - layer.z_surface, 6.0 * float(layer.l_ext_at(band.f_min))), 1e-3)
-            if layer.focal_return and not layer.focal_return_shallow:
+            if layer.focal_return and not (layer.focal_return_shallow or layer.focal_return_excess):
                 depth_max = max(depth_max, 0.5 * c0 * (window.t0 + window.duration) - layer.z_surface)
             self.single = SingleScatteringField(
                 layer,
@@ -354,6 +356,8 @@ class DiffuseBackground:
                     layer, self.single, el, s, self.centres, c0, dim, window
                 )
                 self.single.add_focal_return(var, g1, light)
+                if layer.focal_return_excess:  # the Gaussian field whole until the excess is measured (F5)
+                    fr_kept, self._fr_kept = self._fr_kept, None
         self.envelopes, self.g1 = self._envelopes(self.s_out, s, cone=layer.cbs)
         self.envelope = self.envelopes[len(self.envelopes) // 2]  # the band-centre one (tests, diagnostics)
         # Reciprocity and coherent backscattering between the transmits' beams (`reciprocity`): the main
@@ -366,11 +370,7 @@ class DiffuseBackground:
                 self.block = ReciprocalBlock(self.s_out, spacings, s, w, el, self.freqs, c0)
             except ValueError:  # transmits off the grid (irregular sines): no reciprocal partners
                 self.block = None
-        if self.block is not None:
-            blk = self.block
-            i, j = blk.pairs  # the pair (o_i, a_j), i ≤ j, stands for its reversed path (o_j, a_i) too
-            env_b, self._block_g1 = self._envelopes(self.s_out[blk.rows[i]], blk.inputs[j], cone=False, paired=True)
-            self._block_env = blk.envelopes(env_b)  # (n_pairs, 1, n_bb): T_ij = T_ji
+        self._block_gain: np.ndarray | None = None
         # The angular memory effect (`memory`, eq. M1): the noise correlated under a common tilt of input and
         # output, D_eff at the age of a normally incident path at each time sample, k at the band's centre.
         self._memory: MemoryKernel | None = None
@@ -388,8 +388,8 @@ class DiffuseBackground:
             self._memory = grid_kernel(axes, keep, spacings, s, steps, beta)
             if self.block is not None:
                 self._memory_block = block_kernel(self.block.m_inputs, spacings, steps, beta)
-                g = block_energy_gain(el, spacings, self.block.m_inputs, steps, beta, np.sqrt(kc2))
-                self._block_env = [e / np.sqrt(g).astype(np.float32) for e in self._block_env]
+                self._block_gain = block_energy_gain(el, spacings, self.block.m_inputs, steps, beta, np.sqrt(kc2))
+        self._block_envelopes()
         # With the confocal notch, the Gaussian field is drawn out of the confocal subspace the focal return fills,
         # on the array's elements (`confocal_notch`, docs/design.md §6.6, F4).
         self._notch: ConfocalNotch | None = None
@@ -420,6 +420,84 @@ class DiffuseBackground:
         self.block_state: np.ndarray | None = None
         self._frozen: tuple[np.ndarray, np.ndarray | None] | None = None
         self._phase = np.exp(-2j * np.pi * self.freqs * window.t0).astype(np.complex64)
+        if layer.focal_return and layer.focal_return_excess:
+            assert self.single is not None
+            share = self._excess_share()
+            self.single.scale_focal_return(share[None, :])
+            # (F3) with the excess: a path's apparent depth is half its length, s = 2d, so the share it moves out of
+            # the Gaussian field is scaled by the excess at that depth
+            assert fr_kept is not None
+            s_grid, kept = fr_kept
+            at_s = np.interp(0.5 * s_grid, self.single.depths, share, right=1.0)
+            self._fr_kept = (s_grid, 1.0 - at_s[None, :] * (1.0 - kept))
+            self.envelopes, self.g1 = self._envelopes(self.s_out, s, cone=layer.cbs)
+            self.envelope = self.envelopes[len(self.envelopes) // 2]
+            self._block_envelopes()
+
+    def _block_envelopes(self) -> None:
+        """The reciprocal block's envelopes over its pairs (and their g₁), with the memory effect's energy gain."""
+        if self.block is None:
+            return
+        blk = self.block
+        i, j = blk.pairs  # the pair (o_i, a_j), i ≤ j, stands for its reversed path (o_j, a_i) too
+        env_b, self._block_g1 = self._envelopes(self.s_out[blk.rows[i]], blk.inputs[j], cone=False, paired=True)
+        self._block_env = blk.envelopes(env_b)  # (n_pairs, 1, n_bb): T_ij = T_ji
+        if self._block_gain is not None:
+            self._block_env = [e / np.sqrt(self._block_gain).astype(np.float32) for e in self._block_env]
+
+    def _excess_share(self) -> np.ndarray:
+        """Per depth of the beads' grid, the share of the focal return that the Gaussian field does not already carry
+        at the foci (docs/design.md §6.6, F5): e(d) = 1 − I_G(d)/I_F(d), clipped to [0, 1], I the mean confocal
+        intensity (the matched filter of a reflectivity on the elements, F4's A^H, under the aperture) of the
+        Gaussian field as drawn without the focal return and of the focal return alone, over EXCESS_DRAWS frames
+        from a fixed seed (a table of the rig), smoothed over EXCESS_SMOOTH in depth."""
+        assert self.single is not None
+        ss, layer = self.single, self.layer
+        z_s = layer.z_surface
+        imager = ConfocalNotch(
+            self.s_out,
+            self._spacings,
+            self.sines,
+            self.freqs,
+            self.c0,
+            self.dim,
+            (z_s, z_s + float(ss.depths[-1]) + ss.hz),
+            sensor=(self._project, self._adjoint),
+        )
+        imager.prepare()
+        under = self._under_aperture(imager)
+        gauss, focal = np.zeros(imager.modes[-1]), np.zeros(imager.modes[-1])
+        probe = self.fork(np.random.default_rng(EXCESS_SEED))
+        assert probe.single is not None
+        for _ in range(EXCESS_DRAWS):
+            probe._advance()
+            aw = probe.multiple_spectrum() * self.weights[:, None, None]
+            gauss += _depth_profile(imager, probe._reciprocal(self._project(aw)), under)
+            assert probe.single.state is not None
+            probe.single.state[...] = 0  # the focal return alone
+            fr = project_plane_waves(
+                probe.single.spectrum(), self.freqs, self.c0, self.elements, ss.s_out, ss.axes, ss.keep
+            )
+            focal += _depth_profile(imager, probe._reciprocal(fr), under)
+        z = imager.depths - z_s
+        width = max(1, round(EXCESS_SMOOTH / imager.hz))
+        kernel = np.ones(width) / width
+        gauss_s = np.convolve(gauss, kernel, mode="same")
+        focal_s = np.convolve(focal, kernel, mode="same")
+        share = np.clip(1.0 - gauss_s / np.maximum(focal_s, 1e-300), 0.0, 1.0)
+        return np.interp(ss.depths, z, share)
+
+    def _under_aperture(self, imager: ConfocalNotch) -> np.ndarray:
+        """The imager's lateral pixels under the array's aperture (a boolean mask over its lateral modes)."""
+        axes = []
+        for d, h in enumerate(imager.h):
+            n = imager.modes[d]
+            x = (np.arange(n) - n // 2) * h
+            half = 0.5 * float(np.ptp(self.elements[:, d]))
+            axes.append(np.abs(x) <= half)
+        if self.dim == 3:
+            return axes[0][:, None] & axes[1][None, :]
+        return axes[0]
 
     @classmethod
     def cached(
@@ -638,6 +716,20 @@ class DiffuseBackground:
 #: The confocal notch, and the measured reciprocity without it, keep the Gaussian field's energy per time, averaged
 #: over this window (s; about a pulse length: the transport envelope varies over microseconds; docs/design.md §6.6).
 KEPT_ENVELOPE_WINDOW = 0.5e-6
+
+#: The focal return's excess (`focal_return_excess`, F5): frames drawn from a fixed seed to measure it, and the depth
+#: over which it is smoothed (m; about a pulse length).
+EXCESS_DRAWS = 2
+EXCESS_SEED = 20261207
+EXCESS_SMOOTH = 1e-3
+
+
+def _depth_profile(imager: ConfocalNotch, y: np.ndarray, under: np.ndarray) -> np.ndarray:
+    """The mean confocal intensity by depth of the imager's grid of y on the elements (N_f, N_u, N_θ): |A^H y|²
+    (F4's matched filter) averaged over the lateral pixels `under`."""
+    image = np.abs(imager.adjoint(y)) ** 2
+    return image[under].mean(axis=0)
+
 
 #: Walks drawn for the focal return's depth profile (`focal_return_tables`), from a fixed seed: a table of the
 #: rig, not a draw of the frame (its Monte-Carlo scatter is a few % per depth cell; docs/design.md §6.6).

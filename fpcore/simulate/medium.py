@@ -98,6 +98,9 @@ class ScatteringLayer:
     elements, where the focal return already counts every path's share (`confocal_notch`, F4; docs/design.md §6.6);
     focal_return_shallow: with the focal return, draw it only down to the beads' own depth (their echo down by e^{−12};
     docs/design.md §6.6), the deeper orders left whole in the Gaussian field — no grid to the record's end;
+    focal_return_excess: with the focal return, on the beads' own depths as focal_return_shallow, draw only the part of
+    its confocal return that the Gaussian field does not already carry at the foci (measured once per rig, F5 of
+    docs/design.md §6.6), the Gaussian field left whole otherwise, no notch;
     measured_reciprocity: with cbs, the background (both orders) projected onto the fields whose element-basis matrix
     is symmetric as the transmits measure it (`reciprocity.ElementReciprocity`, R1–R2; default since 2026-12-06,
     False keeps the earlier background; always on with the notch).
@@ -127,6 +130,7 @@ class ScatteringLayer:
     confocal_notch: bool = False
     measured_reciprocity: bool = True
     focal_return_shallow: bool = False
+    focal_return_excess: bool = False
 
     def __post_init__(self) -> None:
         if self.angular not in ("uniform", "halo"):
@@ -141,6 +145,12 @@ class ScatteringLayer:
             )
         if self.focal_return_shallow and not self.focal_return:
             raise ValueError("focal_return_shallow: expected focal_return=True as well (it bounds the focal return)")
+        if self.focal_return_excess and not self.focal_return:
+            raise ValueError("focal_return_excess: expected focal_return=True as well (it bounds the focal return)")
+        if self.focal_return_excess and self.confocal_notch:
+            raise ValueError(
+                "focal_return_excess: expected confocal_notch=False (the excess is what the un-notched field lacks)"
+            )
         if self.confocal_notch and not self.focal_return:
             raise ValueError(
                 "confocal_notch: expected focal_return=True as well (the notch leaves the focus to the focal return)"

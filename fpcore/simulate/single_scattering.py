@@ -199,6 +199,17 @@ class SingleScatteringField:
         self._fr_light = lit
         self._fr_g1 = None if g1 is None else np.asarray(g1, dtype=np.float32)
 
+    def scale_focal_return(self, factor: np.ndarray) -> None:
+        """Multiply the focal return's variance by `factor` (nz,) or (n_sub, nz), ≥ 0 (`diffuse`'s excess, F5 of
+        docs/design.md §6.6); the sub-bands' profiles are built again at the next spectrum."""
+        if self._fr_var is None:
+            raise ValueError("factor: expected a focal return to scale (add_focal_return first)")
+        fac = np.broadcast_to(np.asarray(factor, dtype=np.float64), self._fr_var.shape)
+        if np.any(fac < 0) or not np.all(np.isfinite(fac)):
+            raise ValueError("factor: expected finite, non-negative factors")
+        self._fr_var = self._fr_var * fac
+        self._plans, self._plan_lock = None, None
+
     def advance(self) -> None:
         """Draw the first grid, or move the beads by one frame (AR(1) with g₁; frozen when g₁ is None); the focal
         return's grid likewise with its own g₁ per depth."""
