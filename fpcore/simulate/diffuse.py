@@ -449,8 +449,8 @@ class DiffuseBackground:
         """Per depth of the beads' grid, the share of the focal return that the Gaussian field does not already carry
         at the foci (docs/design.md §6.6, F5): e(d) = 1 − I_G(d)/I_F(d), clipped to [0, 1], I the mean confocal
         intensity (the matched filter of a reflectivity on the elements, F4's A^H, under the aperture) of the
-        Gaussian field as drawn without the focal return and of the focal return alone, over EXCESS_DRAWS frames
-        from a fixed seed (a table of the rig), smoothed over EXCESS_SMOOTH in depth."""
+        Gaussian field as drawn without the focal return and of the focal return alone, over EXCESS_DRAWS independent
+        frames from fixed seeds (a table of the rig), smoothed over EXCESS_SMOOTH in depth."""
         assert self.single is not None
         ss, layer = self.single, self.layer
         z_s = layer.z_surface
@@ -467,9 +467,9 @@ class DiffuseBackground:
         imager.prepare()
         under = self._under_aperture(imager)
         gauss, focal = np.zeros(imager.modes[-1]), np.zeros(imager.modes[-1])
-        probe = self.fork(np.random.default_rng(EXCESS_SEED))
-        assert probe.single is not None
-        for _ in range(EXCESS_DRAWS):
+        for n in range(EXCESS_DRAWS):  # independent draws (a frozen or slowly moving medium repeats its frames)
+            probe = self.fork(np.random.default_rng(EXCESS_SEED + n))
+            assert probe.single is not None
             probe._advance()
             aw = probe.multiple_spectrum() * self.weights[:, None, None]
             gauss += _depth_profile(imager, probe._reciprocal(self._project(aw)), under)
