@@ -136,8 +136,8 @@ def model_orders(
         **layer_kw,
     )
     out, first = [], []
-    for r in range(n_real):
-        bg = DiffuseBackground(
+    for r in range(n_real):  # the rig's tables built once, each realisation its own draws (`DiffuseBackground.cached`)
+        bg = DiffuseBackground.cached(
             layer,
             s.elements(),
             sines,

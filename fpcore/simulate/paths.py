@@ -446,17 +446,17 @@ def focal_return(
         mid = np.zeros((d_app.size, 3))
         mid[:, :axes] = 0.5 * (paths.start[w, :axes] + paths.end[:, :axes])
         first, last, r_app = paths.start[w] - mid, paths.end - mid, z_surface + d_app
-        sel = in_grid
-        window = paths.start_area
         e_c = path_energy(float(ls[ls.size // 2]))  # the band centre's weights for the lighting depth
-        mass = np.bincount(cell[sel], weights=e_c[sel], minlength=dep.size)
-        mean_end = np.bincount(cell[sel], weights=(e_c * 0.5 * (d1 + dn))[sel], minlength=dep.size)
+        mass = np.bincount(cell[in_grid], weights=e_c[in_grid], minlength=dep.size)
+        mean_end = np.bincount(cell[in_grid], weights=(e_c * 0.5 * (d1 + dn))[in_grid], minlength=dep.size)
         light = np.where(mass > 0, mean_end / np.maximum(mass, 1e-300), dep)
         anchors = f if f.size <= 3 else f[[0, f.size // 2, f.size - 1]]
-        lit_range = z_surface + light[cell[sel]]
+        lit_range = z_surface + light[cell[in_grid]]
         w_anchor = np.stack(
             [
-                discrete_focal_overlap(first[sel], last[sel], r_app[sel], 2 * np.pi * fa / c0, rig, lit_range)
+                discrete_focal_overlap(
+                    first[in_grid], last[in_grid], r_app[in_grid], 2 * np.pi * fa / c0, rig, lit_range
+                )
                 for fa in anchors
             ]
         )
@@ -472,7 +472,7 @@ def focal_return(
             weight = nt2 * energy * ov
         else:  # F2′: each path centred on the axis, per unit area of first scatterings
             weight = np.zeros_like(energy)
-            weight[sel] = nt2 * energy[sel] * _between(f[m], anchors, w_anchor) * paths.start_area / window
+            weight[in_grid] = nt2 * energy[in_grid] * _between(f[m], anchors, w_anchor)
         var[m] = np.bincount(cell[in_grid], weights=weight[in_grid], minlength=dep.size) / h
         total = np.bincount(age[in_ages], weights=energy[in_ages], minlength=s_grid.size)
         moved = np.bincount(age[drawn], weights=(energy * ov / 2)[drawn], minlength=s_grid.size)
