@@ -93,7 +93,7 @@ class ScatteringLayer:
     output direction carries the same envelope, timed at the array's centre) or "halo" (each direction sees
     the halo where its ray through the array meets the surface, at that ray's delay: `diffuse` module doc);
     focal_return: the orders ≥ 2 whose ends the rig sees as one point, drawn as a second reflectivity on the beads'
-    grid at their apparent depth (`paths.focal_return_variance`, docs/design.md §6.6; needs single_scattering="field");
+    grid at their apparent depth (`paths.focal_return`, docs/design.md §6.6; needs single_scattering="field");
     confocal_notch: with the focal return, the Gaussian field drawn out of the confocal subspace on the array's
     elements, where the focal return already counts every path's share (`confocal_notch`, F4; docs/design.md §6.6);
     focal_return_shallow: with the focal return, draw it only down to the beads' own depth (their echo down by e^{−12};

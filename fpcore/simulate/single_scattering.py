@@ -182,7 +182,7 @@ class SingleScatteringField:
         return out
 
     def add_focal_return(self, variance: np.ndarray, g1: np.ndarray | None, light: np.ndarray | None = None) -> None:
-        """A second reflectivity on this grid: the focal return of the orders ≥ 2 (`paths.focal_return_variance`),
+        """A second reflectivity on this grid: the focal return of the orders ≥ 2 (`paths.focal_return`),
         variance (n_sub, nz) per unit volume at each sub-band centre and depth (extinction included), and its g₁
         between frames per depth (nz,), None when frozen; `light` (nz,), the depth below the surface at which each
         depth's focal return is lit by the transmits' beams (its paths' ends, `paths.focal_return`), or None: its own.
@@ -201,14 +201,18 @@ class SingleScatteringField:
 
     def scale_focal_return(self, factor: np.ndarray) -> None:
         """Multiply the focal return's variance by `factor` (nz,) or (n_sub, nz), ≥ 0 (`diffuse`'s excess, F5 of
-        docs/design.md §6.6); the sub-bands' profiles are built again at the next spectrum."""
+        docs/design.md §6.6); the next spectrum takes it (the NUFFT plans do not depend on it)."""
         if self._fr_var is None:
             raise ValueError("factor: expected a focal return to scale (add_focal_return first)")
         fac = np.broadcast_to(np.asarray(factor, dtype=np.float64), self._fr_var.shape)
         if np.any(fac < 0) or not np.all(np.isfinite(fac)):
             raise ValueError("factor: expected finite, non-negative factors")
-        self._fr_var = self._fr_var * fac
-        self._plans, self._plan_lock = None, None
+        self._fr_var = self._fr_var * fac  # a new array: copies made before keep theirs
+
+    def _focal_weights(self, j: int) -> np.ndarray:
+        """The focal return's depth profile at sub-band centre j (nz,): √(ν cell) with e^{−i k_z0 d} (`_sub_band`)."""
+        assert self._fr_var is not None
+        return (np.exp(-1j * self._kz0 * self.depths) * np.sqrt(self._fr_var[j] * self._cell)).astype(np.complex64)
 
     def advance(self) -> None:
         """Draw the first grid, or move the beads by one frame (AR(1) with g₁; frozen when g₁ is None); the focal
@@ -228,10 +232,10 @@ class SingleScatteringField:
 
     def _sub_band(
         self, idx: np.ndarray, fc: float
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, list[tuple[int, int, np.ndarray, list, np.ndarray]]]:
+    ) -> tuple[np.ndarray, np.ndarray, int | None, list[tuple[int, int, np.ndarray, list, np.ndarray]]]:
         """What a frame does not change, per sub-band: the depth profile, the transmits' extinction (N_θ, nz), the
-        focal return's depth profile (or None), per depth chunk (i0, i1, its output directions, its NUFFT plans per
-        transmit, the factor applied after them) (module doc)."""
+        index of the focal return's variance profile (`_focal_weights`; None without one), per depth chunk (i0, i1,
+        its output directions, its NUFFT plans per transmit, the factor applied after them) (module doc)."""
         lay = self.layer
         ls, lext = float(lay.ls_at(fc)), float(lay.l_ext_at(fc))
         kc = 2 * np.pi * fc / self.c0
@@ -242,10 +246,7 @@ class SingleScatteringField:
         depth_w = np.exp(-self.depths * self._q_out / (2 * lext) - 1j * self._kz0 * self.depths)
         depth_w *= np.sqrt(strength * self._cell) if self.draw_beads else 0.0
         tx_w = np.exp(-self.depths[None, :] / (2 * lext * self._ci[:, None])).astype(np.float32)  # (N_θ, nz)
-        fr_w = None
-        if self._fr_var is not None:  # the focal return's variance already holds its legs' extinction
-            j = int(np.argmin(np.abs(self.centres - fc)))
-            fr_w = (np.exp(-1j * self._kz0 * self.depths) * np.sqrt(self._fr_var[j] * self._cell)).astype(np.complex64)
+        fr_j = None if self._fr_var is None else int(np.argmin(np.abs(self.centres - fc)))
         k = 2 * np.pi * self.freqs[idx] / self.c0  # (n_f,)
         kx = k[None, None, :] * self._qx[:, :, None]  # (N_o, N_θ, n_f)
         kz = k[None, None, :] * self._qz[:, :, None]
@@ -277,7 +278,7 @@ class SingleScatteringField:
             taper = self.taper[o_idx] if o_taper is None else self.taper[o_idx] * o_taper
             post = (ph * weyl[o_idx] * self._t_r * taper[:, None, None]).astype(np.complex64)
             chunks.append((i0, i1, o_idx, plans, post))
-        return depth_w.astype(np.complex64), tx_w, fr_w, chunks
+        return depth_w.astype(np.complex64), tx_w, fr_j, chunks
 
     def _depth_chunks(self) -> list[tuple[int, int, np.ndarray, np.ndarray | None]]:
         """The grid's depths in chunks [i0, i1), each summed over the output directions that its sources reach:
@@ -337,10 +338,10 @@ class SingleScatteringField:
             for wts, fc in zip(self.blend, self.centres, strict=True):
                 idx = np.flatnonzero(wts > 0)
                 if idx.size:
-                    depth_w, tx_w, fr_w, chunks = self._sub_band(idx, fc)
+                    depth_w, tx_w, fr_j, chunks = self._sub_band(idx, fc)
                     bw = wts[idx].astype(np.float32)[None, None, :]
                     chunks = [(i0, i1, o, plans, post * bw) for i0, i1, o, plans, post in chunks]
-                    self._plans.append((idx, depth_w, tx_w, fr_w, chunks))
+                    self._plans.append((idx, depth_w, tx_w, fr_j, chunks))
         if self._beams is None:
             self._beams = np.stack([self.beam(i) for i in range(self.n_i)])
         if self._fr_light is not None and self._fr_beams is None:
@@ -355,12 +356,12 @@ class SingleScatteringField:
         assert self._plans is not None and self._beams is not None and self._plan_lock is not None
         out = np.zeros((self.n_o, self.n_i, self.freqs.size), dtype=np.complex64)
         fr_beams = self._beams if self._fr_beams is None else self._fr_beams
-        for idx, depth_w, tx_w, fr_w, chunks in self._plans:
+        for idx, depth_w, tx_w, fr_j, chunks in self._plans:
             base = self.state * depth_w[None, None, :]
             focal = None
-            if fr_w is not None:  # its variance holds its legs' extinction: no transmit factor (module doc)
+            if fr_j is not None:  # its variance holds its legs' extinction: no transmit factor (module doc)
                 assert self.fr_state is not None
-                focal = self.fr_state * fr_w[None, None, :]
+                focal = self.fr_state * self._focal_weights(fr_j)[None, None, :]
             for i in range(self.n_i):
                 grid = base * tx_w[i][None, None, :]
                 grid *= self._beams[i]
