@@ -101,6 +101,10 @@ class ScatteringLayer:
     focal_return_excess: with the focal return, on the beads' own depths as focal_return_shallow, draw only the part of
     its confocal return that the Gaussian field does not already carry at the foci (measured once per rig, F5 of
     docs/design.md §6.6), the Gaussian field left whole otherwise, no notch;
+    focal_return_pairs: with the focal return, draw it as two-point paths (F6 of docs/design.md §6.6): each path's
+    ends kept apart laterally on the beads' grid (its depths collapsed to the apparent one), its reversed partner in
+    phase, its defocus in the variance; the Gaussian field keeps the paths' share the pairs do not carry; no notch,
+    no excess;
     measured_reciprocity: with cbs, the background (both orders) projected onto the fields whose element-basis matrix
     is symmetric as the transmits measure it (`reciprocity.ElementReciprocity`, R1–R2; default since 2026-12-06,
     False keeps the earlier background; always on with the notch).
@@ -131,6 +135,7 @@ class ScatteringLayer:
     measured_reciprocity: bool = True
     focal_return_shallow: bool = False
     focal_return_excess: bool = False
+    focal_return_pairs: bool = False
 
     def __post_init__(self) -> None:
         if self.angular not in ("uniform", "halo"):
@@ -150,6 +155,13 @@ class ScatteringLayer:
         if self.focal_return_excess and self.confocal_notch:
             raise ValueError(
                 "focal_return_excess: expected confocal_notch=False (the excess is what the un-notched field lacks)"
+            )
+        if self.focal_return_pairs and not self.focal_return:
+            raise ValueError("focal_return_pairs: expected focal_return=True as well (the pairs draw the focal return)")
+        if self.focal_return_pairs and (self.confocal_notch or self.focal_return_excess):
+            raise ValueError(
+                "focal_return_pairs: expected confocal_notch=False and focal_return_excess=False (the pairs carry "
+                "the paths' confocal return themselves)"
             )
         if self.confocal_notch and not self.focal_return:
             raise ValueError(

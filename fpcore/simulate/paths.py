@@ -43,7 +43,7 @@ import numpy as np
 from ..geometry import secant_over_aperture, secant_over_sines
 from ..kernel import default_threads
 from ..kernel_presum_loops import _jit, nb, pool, split
-from .single_scattering import BEAM_SOFT, _edge, beam_gain, beam_half_width
+from .single_scattering import BEAM_SOFT, PAIR_CODE_STEPS, _edge, beam_gain, beam_half_width
 
 __all__ = [
     "Paths",
@@ -53,6 +53,7 @@ __all__ = [
     "draw_paths",
     "far_green",
     "focal_overlap",
+    "focal_pairs",
     "focal_return",
     "path_spectra",
 ]
@@ -402,6 +403,70 @@ def focal_return(
     of its paths' ends' depths — and ν takes W′ (eq. F2′, `discrete_focal_overlap`, its point lit there) of each path
     moved across so that its midpoint lies on the axis (the grid lights each point where it lies); κ keeps (F2)'s W.
     None without rig."""
+    var, kept, light, _ = _focal_sums(
+        paths, depths, lengths, freqs, ls, la, c0, transmit_span, aperture, z_surface, rig, None
+    )
+    return var, kept, light
+
+
+def focal_pairs(
+    paths: Paths,
+    depths: np.ndarray,
+    lengths: np.ndarray,
+    freqs: np.ndarray,
+    ls: np.ndarray,
+    la: float,
+    c0: float,
+    transmit_span: np.ndarray,
+    aperture: np.ndarray,
+    z_surface: float,
+    rig: FocalRig,
+    spacing: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The focal return drawn as two-point paths (docs/design.md §6.6, F6): each path's ends kept apart laterally
+    on the beads' grid, its depths collapsed to the apparent one. Arguments as `focal_return` (`rig` required),
+    `spacing` the grid's lateral step. Returns
+
+    - ν' (N_f, N_z), the paths' intensity per unit volume with their defocus,
+          ν'(d) = (1/(A h)) Σ n|t|² sw w_f e^{−(q_in d₁ + q_out d_n)/ℓ_ext(f)} D,   D = W′(r̄₁, r̄_n)/2,       (F6)
+      D the path's discrete focal overlap (F2′) with both ends moved across onto the axis (r̄: the lateral
+      separation removed, the depths kept: the legs' defocus and the receive's spreading from the end's own range),
+      1 where the ends coincide in focus — the lateral separation is the grid's to draw;
+    - κ (N_f, N_s), the Gaussian field's share by path length: each drawn path moves min(1, D/ρ_R) of its energy,
+      ρ_R = ½[(R/R_n)^{d−1} + (R/R₁)^{d−1}] the element energy of its ends against a point at the apparent range
+      R (what D counts besides the defocus);
+    - the lighting depth (N_z,), as `focal_return`'s;
+    - the lateral separations (n_axes, N_z, PAIR_MAX_STEPS + 1): per axis and depth, the distribution of
+      |Δ|/spacing rounded (ν'-weighted at the band's centre, the last bin holding the longer ones), each row
+      summing to 1 (all at 0 where no path lands)."""
+    if spacing <= 0:
+        raise ValueError(f"spacing: expected the grid's lateral step > 0 m, got {spacing}")
+    var, kept, light, sep = _focal_sums(
+        paths, depths, lengths, freqs, ls, la, c0, transmit_span, aperture, z_surface, rig, spacing
+    )
+    assert light is not None and sep is not None
+    return var, kept, light, sep
+
+
+#: The longest lateral separation of a drawn pair, in grid steps per axis (`focal_pairs`; the grid's phase codes).
+PAIR_MAX_STEPS = PAIR_CODE_STEPS
+
+
+def _focal_sums(
+    paths: Paths,
+    depths: np.ndarray,
+    lengths: np.ndarray,
+    freqs: np.ndarray,
+    ls: np.ndarray,
+    la: float,
+    c0: float,
+    transmit_span: np.ndarray,
+    aperture: np.ndarray,
+    z_surface: float,
+    rig: FocalRig | None,
+    pair_spacing: float | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """`focal_return` (pair_spacing None) and `focal_pairs` (the grid's lateral step): (ν, κ, light, separations)."""
     dep = np.asarray(depths, dtype=np.float64)
     h = float(dep[1] - dep[0]) if dep.size > 1 else 1.0
     s_grid = np.asarray(lengths, dtype=np.float64)
@@ -409,9 +474,15 @@ def focal_return(
     f = np.asarray(freqs, dtype=np.float64)
     ls = np.broadcast_to(np.asarray(ls, dtype=np.float64), f.shape)
     var, kept = np.zeros((f.size, dep.size)), np.ones((f.size, s_grid.size))
-    if paths.n_paths == 0:
-        return var, kept, (dep.copy() if rig is not None else None)
     axes = 2 if paths.dim == 3 else 1
+    pairs = pair_spacing is not None
+    if pairs and rig is None:
+        raise ValueError("rig: expected the rig's foci for the pairs (F6 takes F2′ of the collapsed paths)")
+    sep = np.zeros((axes, dep.size, PAIR_MAX_STEPS + 1)) if pairs else None
+    if sep is not None:
+        sep[:, :, 0] = 1.0
+    if paths.n_paths == 0:
+        return var, kept, (dep.copy() if rig is not None else None), sep
     w = paths.walk
     d1 = paths.start[w, 2] - z_surface
     dn = paths.end[:, 2] - z_surface
@@ -443,14 +514,23 @@ def focal_return(
         # F2′ of each path moved laterally so that its midpoint lies on the axis: the medium is invariant in x, and
         # the grid's focal return is lit where it lies by the beams themselves (a path off the axis taken as it
         # lies would be darkened by the beams' walk-off twice, in W′ and on the grid: docs/design.md §6.6).
+        # (F6) moves both ends onto the axis instead: the grid draws their lateral separation itself.
         mid = np.zeros((d_app.size, 3))
-        mid[:, :axes] = 0.5 * (paths.start[w, :axes] + paths.end[:, :axes])
-        first, last, r_app = paths.start[w] - mid, paths.end - mid, z_surface + d_app
+        if pairs:
+            mid[:, :axes] = paths.end[:, :axes]
+            first, last = paths.start[w].copy(), paths.end - mid
+            first[:, :axes] = 0.0
+        else:
+            mid[:, :axes] = 0.5 * (paths.start[w, :axes] + paths.end[:, :axes])
+            first, last = paths.start[w] - mid, paths.end - mid
+        r_app = z_surface + d_app
         e_c = path_energy(float(ls[ls.size // 2]))  # the band centre's weights for the lighting depth
         mass = np.bincount(cell[in_grid], weights=e_c[in_grid], minlength=dep.size)
         mean_end = np.bincount(cell[in_grid], weights=(e_c * 0.5 * (d1 + dn))[in_grid], minlength=dep.size)
         light = np.where(mass > 0, mean_end / np.maximum(mass, 1e-300), dep)
         anchors = f if f.size <= 3 else f[[0, f.size // 2, f.size - 1]]
+        # (F6): the element energy of the path's two ends against a point at its apparent range
+        rho_r = 0.5 * ((r_app / (z_surface + dn)) ** (paths.dim - 1) + (r_app / (z_surface + d1)) ** (paths.dim - 1))
         lit_range = z_surface + light[cell[in_grid]]
         w_anchor = np.stack(
             [
@@ -470,14 +550,30 @@ def focal_return(
         ov = focal_overlap(delta, A_W * lam / span, a_r, d_app - d1, d_app - dn, k)
         if rig is None:
             weight = nt2 * energy * ov
-        else:  # F2′: each path centred on the axis, per unit area of first scatterings
+        else:  # F2′: each path centred on the axis (F6: collapsed onto it), per unit area of first scatterings
             weight = np.zeros_like(energy)
             weight[in_grid] = nt2 * energy[in_grid] * _between(f[m], anchors, w_anchor)
+            if pairs:
+                weight *= 0.5  # D = W′/2: the pair's two cells carry the factor 2 where its ends coincide
         var[m] = np.bincount(cell[in_grid], weights=weight[in_grid], minlength=dep.size) / h
         total = np.bincount(age[in_ages], weights=energy[in_ages], minlength=s_grid.size)
-        moved = np.bincount(age[drawn], weights=(energy * ov / 2)[drawn], minlength=s_grid.size)
+        if pairs:  # (F6): a pair moves min(1, D/ρ_R) of its energy
+            share = np.zeros_like(energy)
+            share[in_grid] = _between(f[m], anchors, w_anchor) / (2 * rho_r[in_grid])
+            moved_e = energy * np.clip(share, 0.0, 1.0)
+        else:
+            moved_e = energy * ov / 2
+        moved = np.bincount(age[drawn], weights=moved_e[drawn], minlength=s_grid.size)
         kept[m] = np.where(total > 0, np.clip(1.0 - moved / np.maximum(total, 1e-300), 0.0, 1.0), 1.0)
-    return var, kept, light
+        if sep is not None and pair_spacing is not None and m == f.size // 2:  # weighted by ν' at the band's centre
+            for j in range(axes):
+                steps = np.minimum(np.rint(np.abs(delta[:, j]) / pair_spacing), PAIR_MAX_STEPS).astype(np.int64)
+                flat = cell[in_grid] * (PAIR_MAX_STEPS + 1) + steps[in_grid]
+                hist = np.bincount(flat, weights=weight[in_grid], minlength=dep.size * (PAIR_MAX_STEPS + 1))
+                hist = hist.reshape(dep.size, PAIR_MAX_STEPS + 1)
+                mass = hist.sum(axis=1, keepdims=True)
+                sep[j] = np.where(mass > 0, hist / np.maximum(mass, 1e-300), sep[j])
+    return var, kept, light, sep
 
 
 def _between(x: float, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:

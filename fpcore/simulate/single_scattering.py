@@ -38,6 +38,8 @@ import finufft
 import numpy as np
 
 from ..geometry import cosines, secant_over_aperture
+from ..kernel import default_threads
+from ..kernel_presum_loops import _jit, nb, pool, split
 
 if TYPE_CHECKING:
     from .medium import ScatteringLayer
@@ -85,6 +87,7 @@ class SingleScatteringField:
         half = [float(beam_half_width(aperture[d], z_far, lam)) for d in range(2)]
         ci = cosines(si)
         self._tan = si / ci[:, None]  # (N_θ, 2)
+        self._sines_in = si
         reach = [1.15 * half[d] + z_far * float(np.abs(self._tan[:, d]).max(initial=0.0)) for d in range(2)]
         self._half = half  # at the deepest depth: the grid's reach
         self._aperture, self._lam = (float(aperture[0]), float(aperture[1])), lam
@@ -140,6 +143,10 @@ class SingleScatteringField:
         self._fr_beams: np.ndarray | None = None
         self._fr_g1: np.ndarray | None = None
         self.fr_state: np.ndarray | None = None
+        # The focal return as two-point paths (F6, `add_focal_return`'s separations): the per-axis distribution of
+        # the pairs' lateral separations by depth, and, drawn with the first grid, each cell's partner (`pair_cells`).
+        self._fr_sep: np.ndarray | None = None
+        self._pairs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         # False leaves the focal return alone on the grid, the beads' reflectivity zero (a diagnostic: the focal
         # return's own share of the focused matrix, bench/transport_paths.py --focal-split). Set before the first
         # spectrum.
@@ -181,12 +188,22 @@ class SingleScatteringField:
         out.imag = self.rng.standard_normal(shape, dtype=np.float32) * sig
         return out
 
-    def add_focal_return(self, variance: np.ndarray, g1: np.ndarray | None, light: np.ndarray | None = None) -> None:
+    def add_focal_return(
+        self,
+        variance: np.ndarray,
+        g1: np.ndarray | None,
+        light: np.ndarray | None = None,
+        separations: np.ndarray | None = None,
+    ) -> None:
         """A second reflectivity on this grid: the focal return of the orders ≥ 2 (`paths.focal_return`),
         variance (n_sub, nz) per unit volume at each sub-band centre and depth (extinction included), and its g₁
         between frames per depth (nz,), None when frozen; `light` (nz,), the depth below the surface at which each
         depth's focal return is lit by the transmits' beams (its paths' ends, `paths.focal_return`), or None: its own.
-        Set before the first spectrum."""
+        With `separations` (n_axes, nz, n_steps) (`paths.focal_pairs`, F6 of docs/design.md §6.6) the cells are
+        paired, each pair one path whose ends lie that many grid steps apart per axis: a cell holds the term received
+        at it and transmitted from its partner (each transmit's phase and beam taken at the partner), the partner the
+        reversed term, with the same amplitude (√2 × where a cell is its own partner: the ends coincide); the
+        variance is then the paths' ν' (`paths.focal_pairs`). Set before the first spectrum."""
         v = np.asarray(variance, dtype=np.float64)
         if v.shape != (self.centres.size, self.nz):
             raise ValueError(f"variance: expected shape {(self.centres.size, self.nz)}, got {v.shape}")
@@ -195,9 +212,16 @@ class SingleScatteringField:
         lit = None if light is None else np.asarray(light, dtype=np.float64)
         if lit is not None and lit.shape != (self.nz,):
             raise ValueError(f"light: expected a depth per grid depth, shape {(self.nz,)}, got {lit.shape}")
+        sep = None if separations is None else np.asarray(separations, dtype=np.float64)
+        axes = 2 if self.dim == 3 else 1
+        if sep is not None and (sep.ndim != 3 or sep.shape[:2] != (axes, self.nz) or sep.shape[2] < 1):
+            raise ValueError(f"separations: expected shape ({axes}, {self.nz}, n_steps), got {sep.shape}")
+        if sep is not None and (np.any(sep < 0) or not np.allclose(sep.sum(axis=2), 1.0, atol=1e-6)):
+            raise ValueError("separations: expected non-negative probabilities summing to 1 per axis and depth")
         self._fr_var = v
         self._fr_light = lit
         self._fr_g1 = None if g1 is None else np.asarray(g1, dtype=np.float32)
+        self._fr_sep = sep
 
     def scale_focal_return(self, factor: np.ndarray) -> None:
         """Multiply the focal return's variance by `factor` (nz,) or (n_sub, nz), ≥ 0 (`diffuse`'s excess, F5 of
@@ -226,6 +250,8 @@ class SingleScatteringField:
         if self._fr_var is not None:
             if self.fr_state is None:
                 self.fr_state = self._white()
+                if self._fr_sep is not None:  # the paths' topology: drawn once, its amplitudes evolve with g₁
+                    self._pairs = pair_layout(pair_offsets((self.nx, self.ny, self.nz), self._fr_sep, self.rng))
             elif self._fr_g1 is not None:
                 self.fr_state *= self._fr_g1
                 self.fr_state += self._white() * np.sqrt(np.maximum(0.0, 1.0 - self._fr_g1**2))
@@ -361,12 +387,17 @@ class SingleScatteringField:
             focal = None
             if fr_j is not None:  # its variance holds its legs' extinction: no transmit factor (module doc)
                 assert self.fr_state is not None
-                focal = self.fr_state * self._focal_weights(fr_j)[None, None, :]
+                amp = self.fr_state if self._pairs is None else self._paired_amplitudes()
+                focal = amp * self._focal_weights(fr_j)[None, None, :]
+            phases = None if self._pairs is None or fr_j is None else self._pair_phases(fr_j)
             for i in range(self.n_i):
-                grid = base * tx_w[i][None, None, :]
-                grid *= self._beams[i]
-                if focal is not None:  # lit as its ends are (`add_focal_return`'s light), else as the beads
-                    grid += focal * fr_beams[i]
+                if focal is not None and phases is not None and self._pairs is not None:  # (F6): from the partner
+                    grid = _paired_grid(base, tx_w[i], self._beams[i], focal, phases[i], self._pairs, fr_beams[i])
+                else:
+                    grid = base * tx_w[i][None, None, :]
+                    grid *= self._beams[i]
+                    if focal is not None:  # lit as its ends are (`add_focal_return`'s light), else as the beads
+                        grid += focal * fr_beams[i]
                 for i0, i1, o_idx, plans, post in chunks:
                     part = np.ascontiguousarray(grid[:, :, i0:i1] if self.dim == 3 else grid[:, 0, i0:i1])
                     with self._plan_lock:
@@ -376,6 +407,23 @@ class SingleScatteringField:
                     else:
                         out[o_idx[:, None], i, idx[None, :]] += vals
         return out
+
+    def _paired_amplitudes(self) -> np.ndarray:
+        """The focal return's amplitudes with each pair's two cells equal (its primary's white value), √2 × on the
+        cells that are their own partner (F6)."""
+        assert self._pairs is not None and self.fr_state is not None
+        _, primary, _, gain = self._pairs
+        return self.fr_state.reshape(-1)[primary].reshape(self.fr_state.shape) * gain
+
+    def _pair_phases(self, j: int) -> np.ndarray:
+        """Per transmit, e^{−ik a_θ·δ} over every offset δ = (m_x, m_y) h_x to the partner (the transmit's phase at
+        the partner instead of the cell), k at sub-band centre j: (N_θ, (2M + 1)^2) complex64, indexed by
+        `_pairs`' offset codes (F6)."""
+        k = 2 * np.pi * float(self.centres[j]) / self.c0
+        m = np.arange(-PAIR_CODE_STEPS, PAIR_CODE_STEPS + 1) * self.hx
+        px = np.exp(-1j * k * self._sines_in[:, 0, None] * m[None, :])
+        py = np.exp(-1j * k * self._sines_in[:, 1, None] * m[None, :]) if self.dim == 3 else np.ones_like(px)
+        return (px[:, :, None] * py[:, None, :]).reshape(self.n_i, -1).astype(np.complex64)
 
     @property
     def _ds2(self) -> float:
@@ -422,6 +470,108 @@ def output_grid(
     keep = mag < s_end
     edge = np.clip((mag[keep] - s_need) / (s_end - s_need), 0.0, 1.0)
     return ds, axes, keep, full[keep], 0.5 + 0.5 * np.cos(np.pi * edge)
+
+
+#: The longest pair offset per axis the phase codes hold (`pair_layout`; `paths.PAIR_MAX_STEPS` rounds to it).
+PAIR_CODE_STEPS = 40
+
+
+def pair_offsets(shape: tuple[int, int, int], separations: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Each cell's offset to its partner (2, nx, ny, nz) int16, in grid steps per lateral axis (F6 of docs/design.md
+    §6.6): the cells of every depth paired so that the pairs' separations per axis follow `separations` (n_axes, nz,
+    n_steps): the share separations[axis, depth, m] of the cells has |offset| = m (each cell carries the same
+    variance, so this is the share of the paths' energy). Each depth is cut along y into strips of
+    height 2m_y (1 for m_y = 0), each strip along x into tiles of width 2m_x, the tile's cell (x, y) paired with
+    (x ± m_x, y ± m_y) across its halves: the partner's partner is the cell, and a cell is its own partner only
+    where m_x = m_y = 0. At the grid's edges a tile too wide shrinks to the widest that fits."""
+    nx, ny, nz = shape
+    sep = np.asarray(separations, dtype=np.float64)
+    if sep.shape[2] > PAIR_CODE_STEPS + 1:
+        raise ValueError(f"separations: expected at most {PAIR_CODE_STEPS + 1} steps, got {sep.shape[2]}")
+    off = np.zeros((2, nx, ny, nz), dtype=np.int16)
+
+    def tiling(n: int, q: np.ndarray) -> np.ndarray:
+        """Offsets along one axis of n cells: tiles of 2m (±m across their halves) or single cells (m = 0), the
+        share q(m) of the cells in tiles of m (a tile's probability q(m) over its width)."""
+        out = np.zeros(n, dtype=np.int16)
+        p = q / np.maximum(2 * np.arange(q.size), 1)
+        draws = rng.choice(p.size, size=n, p=p / p.sum())
+        cur = 0
+        for m in draws:
+            if cur >= n:
+                break
+            m = min(int(m), (n - cur) // 2)
+            if m == 0:
+                cur += 1
+                continue
+            out[cur : cur + m], out[cur + m : cur + 2 * m] = m, -m
+            cur += 2 * m
+        return out
+
+    for z in range(nz):
+        oy = tiling(ny, sep[1, z]) if sep.shape[0] > 1 else np.zeros(ny, dtype=np.int16)
+        y0 = 0
+        while y0 < ny:
+            height = 2 * abs(int(oy[y0])) if oy[y0] != 0 else 1
+            off[0, :, y0 : y0 + height, z] = tiling(nx, sep[0, z])[:, None]
+            off[1, :, y0 : y0 + height, z] = oy[None, y0 : y0 + height]
+            y0 += height
+    return off
+
+
+def pair_layout(off: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """From the offsets to the partners (`pair_offsets`, (2, nx, ny, nz)): each cell's partner and its pair's primary
+    cell (the lower flat index), flat int32 (nx·ny·nz,); its offset's code into `SingleScatteringField._pair_phases`
+    and its amplitude gain (√2 where the cell is its own partner), (nx, ny, nz) int32 and float32."""
+    _, nx, ny, nz = off.shape
+    ix, iy, iz = np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij")
+    cell = (ix * ny + iy) * nz + iz
+    partner = ((ix + off[0]) * ny + (iy + off[1])) * nz + iz
+    primary = np.minimum(cell, partner).ravel().astype(np.int32)
+    width = 2 * PAIR_CODE_STEPS + 1
+    combo = (off[0].astype(np.int32) + PAIR_CODE_STEPS) * width + off[1] + PAIR_CODE_STEPS
+    alone = (off[0] == 0) & (off[1] == 0)
+    gain = np.where(alone, np.float32(np.sqrt(2.0)), np.float32(1.0)).astype(np.float32)
+    return partner.ravel().astype(np.int32), primary, combo, gain
+
+
+def _paired_grid(
+    base: np.ndarray,
+    tx_w: np.ndarray,
+    beam: np.ndarray,
+    focal: np.ndarray,
+    phases: np.ndarray,
+    pairs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    fr_beam: np.ndarray,
+) -> np.ndarray:
+    """One transmit's grid with the pairs (F6): the beads' base × its extinction per depth × its beam, plus the focal
+    return × the transmit's phase at each cell's partner (`phases` indexed by the offset codes) × its beam there;
+    (nx, ny, nz) complex64. Compiled (one pass, the project's threads) where numba is, NumPy otherwise."""
+    partner, _, combo, _ = pairs
+    if nb is None:  # pragma: no cover - numba is a dependency; the same sums
+        grid = base * tx_w[None, None, :] * beam
+        grid += focal * phases[combo] * fr_beam.reshape(-1)[partner].reshape(base.shape)
+        return grid
+    out = np.empty(base.shape, dtype=np.complex64)
+    flat = (base.reshape(-1), tx_w.astype(np.float32), beam.reshape(-1), focal.reshape(-1), phases, combo.reshape(-1))
+    args = (*flat, partner, fr_beam.reshape(-1), out.reshape(-1))
+    n, parts = out.size, 4 * default_threads()
+
+    def task(slot: int, t: int) -> tuple:
+        return (*args, *split(n, parts, t))
+
+    pool(default_threads(), parts, _paired_rows, task)
+    return out
+
+
+if nb is not None:
+
+    @_jit
+    def _paired_rows(base, tx_w, beam, focal, phases, combo, partner, fr_beam, out, r0, r1):  # pragma: no cover
+        """out[c] = base[c] tx_w[c mod nz] beam[c] + focal[c] phases[combo[c]] fr_beam[partner[c]], r0 ≤ c < r1."""
+        nz = tx_w.size
+        for c in range(r0, r1):
+            out[c] = base[c] * (tx_w[c % nz] * beam[c]) + focal[c] * phases[combo[c]] * fr_beam[partner[c]]
 
 
 #: The beams' cosine edges, this fraction of the half-width either side of it (`SingleScatteringField.beam`).
