@@ -7,12 +7,14 @@
 
 For paths drawn in the rig's medium (`paths.draw_paths`, first scatterings weighted by the incident extinction),
 sampled by their energy in bins of apparent depth (d₁ + d_n + L)/2 of 1 ℓ_s, their midpoints within ±2 mm of the
-axis: the confocal return of each path's own field — at the elements through `path_spectra` (the transmits as the
-rig fires them: `PlaneWaveBeams` for the sinking sphere, synthesised by the elements for Foldy–Lax), delay-and-summed
-at its apparent depth over a ±6 mm patch, its energy per frequency summed with the band's weights — against the
-model's: W times the same of a point at the midpoint in focus, with W the Gaussian foci of (F2) or the discrete
-overlap of (F2′) (`paths.discrete_focal_overlap`). Printed per bin: Σ direct / Σ model in dB (0: the focal return's
-variance is right there). About 2 s a path on 2 cores.
+axis (--mid-window widens it): the confocal return of each path's own field — at the elements through
+`path_spectra` (the transmits as the rig fires them: `PlaneWaveBeams` for the sinking sphere, synthesised by the
+elements for Foldy–Lax), delay-and-summed at its apparent depth over a ±6 mm patch centred on its midpoint, its
+energy per frequency summed with the band's weights — against the model's: W times the same of a point at the
+midpoint in focus, with W the Gaussian foci of (F2) or the discrete overlap of (F2′) (`paths.discrete_focal_overlap`,
+of the path moved across so that its midpoint lies on the axis, as `paths.focal_return` takes it: the point at the
+midpoint carries the beams' walk-off). Printed per bin: Σ direct / Σ model in dB (0: the focal return's variance is
+right there). About 2 s a path on 2 cores.
 """
 
 from __future__ import annotations
@@ -49,7 +51,8 @@ from fpcore.simulate.paths import (  # noqa: E402
 #: The confocal patch (half-width, points per side; --patch widens it at the same spacing) and the frequencies'
 #: stride of the direct sum.
 PATCH, PATCH_POINTS, FREQ_STRIDE = 6e-3, 25, 3
-#: The paths' midpoints are taken within this of the axis, where the patch holds their whole return.
+#: The paths' midpoints are taken within this of the axis by default (--mid-window widens it: the model's focal
+#: return holds off the axis as well, where the steered beams have walked away).
 MID_WINDOW = 2e-3
 
 
@@ -131,11 +134,13 @@ def one_path(first: np.ndarray, last: np.ndarray, length: float) -> Paths:
                  np.array([1.0]), 1.0)  # fmt: skip
 
 
-def patch_energy(rig: Rig, v: np.ndarray, r_app: float, patch: float = PATCH) -> np.ndarray:
-    """Σ over the patch (half-width `patch`) of |B_f|² at the range r_app, per frequency of the stride (weights²
-    applied)."""
+def patch_energy(
+    rig: Rig, v: np.ndarray, r_app: float, patch: float = PATCH, centre: tuple[float, float] = (0.0, 0.0)
+) -> np.ndarray:
+    """Σ over the patch (half-width `patch`, centred laterally on `centre`) of |B_f|² at the range r_app, per
+    frequency of the stride (weights² applied)."""
     x = np.linspace(-patch, patch, 1 + int(round((PATCH_POINTS - 1) * patch / PATCH)))
-    yy, xx = np.meshgrid(x, x, indexing="ij")
+    yy, xx = np.meshgrid(x + centre[1], x + centre[0], indexing="ij")
     pts = np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, r_app)], axis=1)
     d_out = np.linalg.norm(pts[:, None, :] - rig.elements[None], axis=2)
     d_in = pts[:, :2] @ rig.sines.T + r_app * np.sqrt(1 - (rig.sines**2).sum(1))[None]
@@ -150,17 +155,22 @@ def patch_energy(rig: Rig, v: np.ndarray, r_app: float, patch: float = PATCH) ->
 def check(
     rig: Rig, first: np.ndarray, last: np.ndarray, length: float, focal: FocalRig, patch: float = PATCH
 ) -> tuple[float, float, float]:
-    """(direct, F2 model, F2′ model) confocal energies of one path (`patch_energy` summed; the path's own over a
-    patch of half-width `patch`, the points' in focus over the default one, which holds them)."""
+    """(direct, F2 model, F2′ model) confocal energies of one path (`patch_energy` summed, every patch centred on the
+    path's midpoint; the path's own over a patch of half-width `patch`, the points' in focus over the default one,
+    which holds them). F2′ as `paths.focal_return` takes it: W′ of the path moved across so that its midpoint lies on
+    the axis, times a point at the midpoint lit by the transmits where it lies (as the grid lights it)."""
     rays = StraightRays(rig.elements, rig.z_surface, 3)
     big = np.full(rig.freqs.size, 1e3)
     r_app = 0.5 * (first[2] + last[2] + length)
     mid = np.array([*(0.5 * (first[:2] + last[:2])), r_app])
+    at = (float(mid[0]), float(mid[1]))
     direct = patch_energy(
-        rig, path_spectra(one_path(first, last, length), rig.freqs, rig.c0, big, rays, rig.transmits), r_app, patch
+        rig, path_spectra(one_path(first, last, length), rig.freqs, rig.c0, big, rays, rig.transmits), r_app, patch, at
     )
     point = one_path(mid, mid, 0.0)
-    e_pt = patch_energy(rig, path_spectra(point, rig.freqs, rig.c0, big, rays, rig.transmits, first_order=True), r_app)
+    e_pt = patch_energy(
+        rig, path_spectra(point, rig.freqs, rig.c0, big, rays, rig.transmits, first_order=True), r_app, centre=at
+    )
     ks = 2 * np.pi * rig.freqs[::FREQ_STRIDE] / rig.c0
     span = focal.span
     a_r = A_W * (2 * np.pi / ks) * np.sqrt(r_app**2 + rig.aperture**2 / 4) / rig.aperture
@@ -172,13 +182,9 @@ def check(
             for k, a in zip(ks, a_r, strict=True)
         ]
     )
-    # F2′ is normalised on the axis; the direct sum's point is at the midpoint (within MID_WINDOW of it)
-    axis_pt = one_path(np.array([0.0, 0.0, r_app]), np.array([0.0, 0.0, r_app]), 0.0)
-    e_axis = patch_energy(
-        rig, path_spectra(axis_pt, rig.freqs, rig.c0, big, rays, rig.transmits, first_order=True), r_app
-    )
-    wp = np.array([discrete_focal_overlap(first[None], last[None], np.array([r_app]), k, focal)[0] for k in ks])
-    return float(direct.sum()), float(np.sum(w2 * e_pt)), float(np.sum(wp * e_axis))
+    a, b = (first - [mid[0], mid[1], 0.0])[None], (last - [mid[0], mid[1], 0.0])[None]  # centred on the axis
+    wp = np.array([discrete_focal_overlap(a, b, np.array([r_app]), k, focal)[0] for k in ks])
+    return float(direct.sum()), float(np.sum(w2 * e_pt)), float(np.sum(wp * e_pt))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -195,12 +201,18 @@ def main(argv: list[str] | None = None) -> int:
         help="half-width (mm) of the patch the paths' own confocal energy is summed over (deep, defocused paths "
         "spread wider than the default 6 mm: 14 mm holds them at 10–12 ℓ_s on the Foldy–Lax rig)",
     )
+    ap.add_argument(
+        "--mid-window",
+        type=float,
+        default=MID_WINDOW * 1e3,
+        help="half-width (mm) per lateral axis of the window the paths' midpoints are sampled in",
+    )
     ap.add_argument("--out", type=Path, default=None, help="save the sampled paths and their energies (npz)")
     args = ap.parse_args(argv)
-    if args.per_bin < 1 or args.walks < 1 or args.patch <= 0:
+    if args.per_bin < 1 or args.walks < 1 or args.patch <= 0 or args.mid_window <= 0:
         print(
-            f"--per-bin, --walks, --patch: expected integers >= 1 and a patch > 0 mm, got {args.per_bin}, "
-            f"{args.walks}, {args.patch}",
+            f"--per-bin, --walks, --patch, --mid-window: expected integers >= 1 and a patch and a window > 0 mm, got "
+            f"{args.per_bin}, {args.walks}, {args.patch}, {args.mid_window}",
             file=sys.stderr,
         )
         return 2
@@ -218,11 +230,14 @@ def main(argv: list[str] | None = None) -> int:
     mid = 0.5 * (walks.start[w, :2] + walks.end[:, :2])
     rng = np.random.default_rng(1)
     bins = args.bins or (range(1, 9) if args.rig == "headline" else range(1, 6))
-    print(f"{args.rig}: direct / model confocal return of single paths, Σ over {args.per_bin} paths a bin (dB)")
-    print("  apparent depth   direct/F2   direct/F2′")
+    print(
+        f"{args.rig}: direct / model confocal return of single paths, Σ over {args.per_bin} paths a bin (dB), "
+        f"midpoints within ±{args.mid_window:g} mm of the axis"
+    )
+    print("  apparent depth   direct/F2   direct/F2′   mean |midpoint|")
     rows, t0 = [], time.perf_counter()
     for b in bins:
-        sel = np.flatnonzero((np.abs(d_app / rig.ls - b) < 0.5) & (np.abs(mid).max(axis=1) <= MID_WINDOW))
+        sel = np.flatnonzero((np.abs(d_app / rig.ls - b) < 0.5) & (np.abs(mid).max(axis=1) <= args.mid_window * 1e-3))
         pick = rng.choice(sel, args.per_bin, p=energy[sel] / energy[sel].sum())
         got = np.array(
             [
@@ -234,7 +249,7 @@ def main(argv: list[str] | None = None) -> int:
         direct, f2, f2p = got.sum(axis=0)
         print(
             f"  {b} ℓ_s           {10 * np.log10(direct / f2):+6.1f}      {10 * np.log10(direct / f2p):+6.1f}"
-            f"   ({time.perf_counter() - t0:.0f} s)",
+            f"       {1e3 * np.mean(np.hypot(*mid[pick].T)):.1f} mm   ({time.perf_counter() - t0:.0f} s)",
             flush=True,
         )
     if args.out:
