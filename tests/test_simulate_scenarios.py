@@ -39,9 +39,9 @@ def test_sinking_sphere_frames_carry_truth(sinking) -> None:
         names = [t["name"] for t in truth["targets"]]
         assert names == ["sphere1", "sphere2"] and truth["scenario"] == "sinking-sphere"
         z1.append(truth["targets"][0]["position_m"][2])
-        assert truth["targets"][1]["position_m"] == pytest.approx([4.75e-3, 0.0, 26e-3])  # 10 mm: C_I ≈ 1/50
+        assert truth["targets"][1]["position_m"] == pytest.approx([4.75e-3, 0.0, 25.6e-3])  # 9.6 mm: C_I ≈ 1/77
         depth = truth["targets"][0]["depth_below_surface_m"] / truth["medium"]["ls_m"]
-        assert 5.3 <= depth <= 5.7  # where the confocal contrast is the paper's 1/150 (scenarios._SPHERE_DEPTHS)
+        assert 5.2 <= depth <= 5.6  # where the confocal contrast is within the paper's (scenarios._SPHERE_DEPTHS)
     assert z1[0] < z1[1] < z1[2]  # sinking
     assert frames[1].timestamp > frames[0].timestamp
     assert sc.frame_nbytes < 12e6
@@ -219,14 +219,16 @@ def test_sinking_cylinder_is_the_2d_analogue() -> None:
     legacy = scenario("sinking-cylinder", quick=True, n_frames=12, conventions="legacy")
     assert legacy.truth(0)["targets"][0]["depth_below_surface_m"] == pytest.approx(8e-3)
     assert legacy.calibration("cylinder1").truth["r0_m"] == legacy.truth(0)["targets"][0]["position_m"]
-    # In 2-D the paper's layer has the focal return and the notch (all four figures against Foldy–Lax, docs/design.md
-    # §6.6); the spheres' layer and the legacy rig do not, and an override turns them off.
-    assert sc.layer is not None and sc.layer.focal_return and sc.layer.confocal_notch
+    # The paper's layer draws the focal return as two-point paths on the beads' grid (F6, docs/design.md §6.6: all four
+    # figures against Foldy–Lax in 2-D); the legacy rig does not; one focal override replaces the set.
+    for layer in (sc.layer, scenario("sinking-sphere", quick=True, n_frames=2).layer):
+        assert layer is not None and layer.focal_return and layer.focal_return_pairs and layer.focal_return_shallow
+        assert not layer.confocal_notch and not layer.focal_return_excess
     assert legacy.layer is not None and not legacy.layer.focal_return
-    sphere = scenario("sinking-sphere", quick=True, n_frames=2).layer
-    assert sphere is not None and not sphere.focal_return
-    off = scenario("sinking-cylinder", quick=True, n_frames=2, focal_return=False, confocal_notch=False).layer
-    assert off is not None and not off.focal_return and not off.confocal_notch
+    off = scenario("sinking-cylinder", quick=True, n_frames=2, focal_return=False).layer
+    assert off is not None and not (off.focal_return or off.focal_return_pairs or off.focal_return_shallow)
+    notch = scenario("sinking-cylinder", quick=True, n_frames=2, focal_return=True, confocal_notch=True).layer
+    assert notch is not None and notch.confocal_notch and not notch.focal_return_pairs
     shallow = scenario("sinking-cylinder", quick=True, n_frames=12, depth_ls=2.0)
     assert shallow.truth(0)["targets"][1]["depth_below_surface_m"] == pytest.approx(3.6e-3)
     with pytest.raises(ValueError, match="depth_ls"):

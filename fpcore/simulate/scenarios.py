@@ -11,9 +11,9 @@ Each is a function returning a `fpcore.simulate.scene.Scenario` (the rig and its
 
 * ``sinking-sphere`` — the paper's first experiment (main text Fig. 1–3, Supplementary S1–S4): a
   32×32 matrix array (pitch λ/2 at 2.2 MHz, band 1.8–2.6 MHz) over 16 mm of water on a vibrated
-  granular suspension (ℓ_s = 1.8 mm at 2.2 MHz, ℓ_a = 8 mm); a 10 mm sphere settling from 9.6 to 10.2 mm
-  below the surface (5.3–5.7 ℓ_s) and a static 8 mm sphere 10 mm below (5.6 ℓ_s), where the spheres'
-  confocal contrast is the paper's 1/150 and 1/50,
+  granular suspension (ℓ_s = 1.8 mm at 2.2 MHz, ℓ_a = 8 mm); a 10 mm sphere settling from 9.4 to 10.0 mm
+  below the surface (5.2–5.6 ℓ_s) and a static 8 mm sphere 9.6 mm below (5.3 ℓ_s), where the spheres'
+  confocal contrast is within the paper's 1/150 … 1/50,
   in the paper's conventions (CONVENTIONS); 5×5 plane waves; the background decorrelates between
   frames. ``quick``: 16×16 elements over the same aperture (pitch λ), fs = 6.5 MHz.
 * ``sinking-cylinder`` — the 2D analogue of ``sinking-sphere`` (x–z plane, linear array, same band,
@@ -96,8 +96,13 @@ CONVENTIONS = ("paper", "legacy")
 _DEPTHS = {"paper": ((9.9e-3, 10.5e-3), 10.0e-3), "legacy": ((8e-3, 8.6e-3), 7.5e-3)}
 #: The spheres' since the halo geometry and the single scattering's own grid (2026-12-02): on that fog the
 #: old 9.9 → 10.5 mm gave sphere 1 C_I 1/99 → 1/193, so it settles 9.6 → 10.2 mm (1/90 → 1/117 → 1/148 on
-#: frames 0, 15, 31); sphere 2 stays at 10 mm (1/89 → 1/91 → 1/98). The cylinders keep _DEPTHS.
-_SPHERE_DEPTHS = {"paper": ((9.6e-3, 10.2e-3), 10.0e-3), "legacy": _DEPTHS["legacy"]}
+#: frames 0, 15, 31); sphere 2 stays at 10 mm (1/89 → 1/91 → 1/98). The cylinders keep _DEPTHS. With the focal
+#: return drawn as two-point paths (2026-12-07, docs/design.md §6.6 F6: the fog within −0.7 … +1.1 dB of the exact
+#: paths', +0.4 … +1.1 dB at 5–6 ℓ_s where the earlier default was within 0.2 dB) 9.6 → 10.2 and 10 mm gave C_I
+#: 1/97 → 1/153 and 1/82 – 1/85 (quick, frames 0 and 31), 1/137 and 1/152 (the full array, frame 0): sphere 1
+#: settles 9.4 → 10.0 mm and sphere 2 sits at 9.6 mm (0.2 and 0.4 mm higher, sized by the contrast's slope for a
+#: margin from 1/150): 1/73 → 1/136 and 1/75 – 1/78 (quick), 1/103 and 1/115 (full), every one within 1/50–1/150.
+_SPHERE_DEPTHS = {"paper": ((9.4e-3, 10.0e-3), 9.6e-3), "legacy": _DEPTHS["legacy"]}
 #: The paper's stated centre depths (main text: 9 and 7 mm), sphere 1 settling to 9 mm: pass as
 #: ``sink=PAPER_POSITIONS[0], sphere2_depth=PAPER_POSITIONS[1]``.
 PAPER_POSITIONS = ((8.4e-3, 9.0e-3), 7.0e-3)
@@ -120,6 +125,25 @@ def _depths(
     return (sink or table[conventions][0]), (table[conventions][1] if static_depth is None else static_depth)
 
 
+#: The suspension's ℓ_s at 2.2 MHz (Supplementary S1), the unit of the targets' depths (`_granular_suspension`).
+SUSPENSION_LS = 1.8e-3
+
+
+def paper_regime_ls(name: str = "sinking-sphere") -> tuple[float, float]:
+    """The default centre depths below the surface, in ℓ_s at 2.2 MHz, of the targets of "sinking-sphere" or
+    "sinking-cylinder" in the paper's conventions: (shallowest, deepest)."""
+    tables = {"sinking-sphere": _SPHERE_DEPTHS, "sinking-cylinder": _DEPTHS}
+    if name not in tables:
+        raise ValueError(f"name: expected one of {sorted(tables)}, got {name!r}")
+    (start, end), static = tables[name]["paper"]
+    depths = np.array([start, end, static]) / SUSPENSION_LS
+    return float(depths.min()), float(depths.max())
+
+
+#: The layer's focal-return options (`ScatteringLayer`): an override of any of them replaces the scenario's default set.
+_FOCAL_KEYS = {"focal_return", "focal_return_pairs", "focal_return_shallow", "focal_return_excess", "confocal_notch"}
+
+
 def _granular_suspension(conventions: str = "paper", *, dim: int = 3, **overrides: Any) -> ScatteringLayer:
     """The vibrated granular suspension of the paper's first experiment (Supplementary S1): surface 16 mm
     below the array, ℓ_s = 1.8 mm at 2.2 MHz, ℓ_a = 8 mm, 50 µm scatterer motion between frames, in the
@@ -128,7 +152,7 @@ def _granular_suspension(conventions: str = "paper", *, dim: int = 3, **override
         raise ValueError(f"conventions: expected one of {CONVENTIONS}, got {conventions!r}")
     params: dict[str, Any] = dict(
         z_surface=16e-3,
-        ls=1.8e-3,
+        ls=SUSPENSION_LS,
         la=8e-3,
         density=1900.0,
         sound_speed=1600.0,
@@ -153,13 +177,14 @@ def _granular_suspension(conventions: str = "paper", *, dim: int = 3, **override
             # against Foldy–Lax in 2-D and 3-D, bench/validate_background.py); angular="uniform" keeps the earlier.
             angular="halo",
         )
-        if dim == 2:
-            # In 2-D the orders ≥ 2 the rig sees as one point come back as the focal return, and the Gaussian
-            # field leaves the focus to it (docs/design.md §6.6): the one configuration that passes all four
-            # figures against the 2-D Foldy–Lax rig, the contrast slope included (1.19 ± 0.01 against its
-            # 1.18 ± 0.03; without it 1.28 ± 0.02), its cone by age within 0.1 of Foldy–Lax's. In 3-D it stays an
-            # option: its cone overshoots 2 late and a quick frame costs ≈ 9× (docs/design.md §6.6).
-            params.update(focal_return=True, confocal_notch=True)
+        # The orders ≥ 2 whose ends a focus sees, drawn as two-point paths on the beads' grid (F6 of docs/design.md
+        # §6.6; the deeper paths stay in the Gaussian field): against the exact paths of the quick headline rig the
+        # fog is within −0.7 … +1.1 dB at 1 … 8 ℓ_s and the contrast falls as e^{−1.26 z/ℓ_s} (paths 1.21; without
+        # them −4.7 dB at 1 ℓ_s and 1.50); against Foldy–Lax all four figures pass in 2-D (slope 1.15 ± 0.03, FL
+        # 1.18 ± 0.03) and in 3-D the slope, the cone by age and the memory effect are Foldy–Lax's. Any of the focal
+        # keys among the overrides replaces these three (focal_return=False turns the focal return off).
+        if not _FOCAL_KEYS & overrides.keys():
+            params.update(focal_return=True, focal_return_pairs=True, focal_return_shallow=True)
     else:
         params.update(attenuation_depth="front")
     params.update(overrides)
@@ -184,16 +209,18 @@ def sinking_sphere(
     sphere 1 (d = 10 mm) centre `sink` below the surface, settling (decelerating) along a straight
     trajectory that also drifts by 0.45 mm in x and 0.25 mm in y; sphere 2 (d = 8 mm) static,
     centre `sphere2_depth` below the surface; both start in the plane y = 0 at x = ∓4.75 mm. With the
-    default `conventions="paper"` (see CONVENTIONS) sphere 1 settles from 9.6 to 10.2 mm (5.3 → 5.7 ℓ_s)
-    and sphere 2 sits at 10 mm (5.6 ℓ_s): the depths at which their measured confocal contrast is the
-    paper's 1/150 and 1/50 (main text eq. (1); its stated 9 and 7 mm give 1/13–1/24 and 1/2.8 in this
+    default `conventions="paper"` (see CONVENTIONS) sphere 1 settles from 9.4 to 10.0 mm (5.2 → 5.6 ℓ_s)
+    and sphere 2 sits at 9.6 mm (5.3 ℓ_s): the depths at which their measured confocal contrast is within the
+    paper's 1/150 … 1/50 (main text eq. (1); its stated 9 and 7 mm give 1/13–1/24 and 1/2.8 in this
     model, `PAPER_POSITIONS`); the background level is the transport model's, with no gain; the
     calibrations are simulated once, in water, at the paper's r0 = (0, 0, 25) mm (Methods), unless
     calibration="nominal" (r0 at each target's initial position: the truth, for comparison only).
     `conventions="legacy"`: the earlier, easier rig (front-face attenuation, 8 → 8.6 and 7.5 mm,
     background gain 2.5, nominal calibrations). `depth_ls`: both centres that many ℓ_s (at 2.2 MHz) below
     the surface instead, sphere 1 settling 0.6 mm from there (e.g. 2: where this implementation
-    detects both spheres; README, "The paper's regime"). `layer_overrides` go to `ScatteringLayer`.
+    detects both spheres; README, "The paper's regime"). `layer_overrides` go to `ScatteringLayer`; the focal
+    return of the orders ≥ 2 is drawn as two-point paths on the beads' grid (`focal_return_pairs`, F6 of
+    docs/design.md §6.6) unless any focal-return option is among them (focal_return=False turns it off).
     """
     c0, fc = 1500.0, 2.2e6
     pitch = c0 / fc / 2
@@ -260,8 +287,9 @@ def sinking_cylinder(
     (ρ = 5700 kg/m³, c_p = 2700 m/s, c_t = 2000 m/s). `conventions` as in `sinking_sphere`: "paper"
     (default) puts the cylinders at the spheres' earlier depths (9.9 → 10.5 mm and 10 mm), takes the
     transport model's background level (no gain) and calibrates once in water on the axis at 25 mm;
-    with the focal return of the orders ≥ 2 and the confocal notch (in 2-D the background that passes all four figures
-    against Foldy–Lax, docs/design.md §6.6; focal_return=False, confocal_notch=False turns them off);
+    with the focal return of the orders ≥ 2 drawn as two-point paths on the beads' grid (as `sinking_sphere`; in 2-D
+    the background that passes all four figures against Foldy–Lax, docs/design.md §6.6, F6; focal_return=False turns
+    it off);
     "legacy": front-face attenuation, 8 → 8.6 and 7.5 mm, gain 1.0, calibrations at the initial
     (true) positions. calibration="nominal"/"axis" overrides the calibration position; `depth_ls` as in
     `sinking_sphere`.

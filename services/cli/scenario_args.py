@@ -20,9 +20,11 @@ SINKING = ("sinking-sphere", "sinking-cylinder")
 def add_scenario_arguments(p: argparse.ArgumentParser, default_depth_ls: float | None = None) -> None:
     """--depth-ls (None unless given: the command applies `default_depth_ls` to sinking scenarios) and
     --conventions."""
-    from fpcore.simulate.scenarios import CONVENTIONS
+    from fpcore.simulate.scenarios import CONVENTIONS, paper_regime_ls
 
-    default = "the paper's regime, 5.6–6.1 ℓ_s" if default_depth_ls is None else f"{default_depth_ls:g}"
+    lo, hi = paper_regime_ls()
+    regime = f"the paper's regime, the spheres {lo:.1f}–{hi:.1f} ℓ_s"
+    default = regime if default_depth_ls is None else f"{default_depth_ls:g}"
     p.add_argument(
         "--depth-ls",
         type=_depth,
@@ -71,4 +73,7 @@ def depth_note(sc: Any) -> str:
             z = (pl.positions[:, 2] - lay.z_surface) / lay.ls
             span = f"{z.min():.1f}" if np.ptp(z) < 0.05 else f"{z[0]:.1f} → {z[-1]:.1f}"
             parts.append(f"{name} {span} ℓ_s")
-    return "targets' centres below the surface: " + ", ".join(parts) + " (the paper's regime: 5.6–6.1 ℓ_s)"
+    from fpcore.simulate.scenarios import paper_regime_ls
+
+    lo, hi = paper_regime_ls(sc.name)
+    return "targets' centres below the surface: " + ", ".join(parts) + f" (the paper's regime: {lo:.1f}–{hi:.1f} ℓ_s)"
