@@ -12,8 +12,14 @@
     .venv/bin/python bench/validate_background.py --layer envelope=diffusion --layer cbs=True \
         --layer single_scattering=field --layer angular=halo --layer focal_return=True --layer confocal_notch=True \
         --match-dispersion --slab --model-realisations 24
-                   # the focal return with the confocal notch (docs/design.md §6.6, F4): the 2-D scenarios' default
-                   # layer since 2026-12-07 (all four pass, 12 min on 2 cores), an option in 3-D
+                   # the focal return with the confocal notch (docs/design.md §6.6, F4): an option (the 2-D scenarios'
+                   # default for part of 2026-12-07; 12 min on 2 cores)
+    .venv/bin/python bench/validate_background.py --layer envelope=diffusion --layer cbs=True \
+        --layer single_scattering=field --layer angular=halo --layer focal_return=True \
+        --layer focal_return_pairs=True --layer focal_return_shallow=True --match-dispersion --slab \
+        --model-realisations 24
+                   # the scenarios' default since 2026-12-07 (late): the focal return as two-point paths (F6; 2-D:
+                   # all four pass, 1 min; with --reference out/bench/fl_reference_3d_deep.npz the 3-D slab, 4 min)
     .venv/bin/python bench/validate_background.py ... --double-scattering 6   # FL's focused matrix by order too
     .venv/bin/python bench/validate_background.py --reference out/bench/fl_reference_2d_12el.npz ...  # another rig
     .venv/bin/python bench/validate_background.py --reference out/bench/fl_reference_3d_deep.npz --slab \

@@ -4,6 +4,7 @@
     .venv/bin/python bench/validate_simulate.py --full     # + the headline on full frames (slow)
     .venv/bin/python bench/validate_simulate.py --headline-only --layer focal_return=True --layer confocal_notch=True
                                     # the quick headline on a background option (docs/design.md §6.6), ~6 min
+                                    # (any focal-return option replaces the default set: the pairs, F6)
     .venv/bin/python bench/validate_simulate.py --headline-only --scenario sinking-cylinder   # its 2-D analogue
 
 Sections:
