@@ -515,14 +515,13 @@ def _focal_sums(
         # the grid's focal return is lit where it lies by the beams themselves (a path off the axis taken as it
         # lies would be darkened by the beams' walk-off twice, in W′ and on the grid: docs/design.md §6.6).
         # (F6) moves both ends onto the axis instead: the grid draws their lateral separation itself.
-        mid = np.zeros((d_app.size, 3))
-        if pairs:
-            mid[:, :axes] = paths.end[:, :axes]
-            first, last = paths.start[w].copy(), paths.end - mid
-            first[:, :axes] = 0.0
-        else:
-            mid[:, :axes] = 0.5 * (paths.start[w, :axes] + paths.end[:, :axes])
-            first, last = paths.start[w] - mid, paths.end - mid
+        first, last = paths.start[w].copy(), paths.end.copy()
+        if pairs:  # both ends on the axis, their depths kept
+            first[:, :axes], last[:, :axes] = 0.0, 0.0
+        else:  # the midpoint on the axis
+            mid = 0.5 * (first[:, :axes] + last[:, :axes])
+            first[:, :axes] -= mid
+            last[:, :axes] -= mid
         r_app = z_surface + d_app
         e_c = path_energy(float(ls[ls.size // 2]))  # the band centre's weights for the lighting depth
         mass = np.bincount(cell[in_grid], weights=e_c[in_grid], minlength=dep.size)
