@@ -13,6 +13,7 @@ else a Hann bump over the frequencies given, normalised so that 2 ∫ w df = 1 (
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -264,6 +265,9 @@ def cbs_enhancement(
     Reciprocity: Q(a', a) = R(−a', a)/c_a (c = cosine; the obliquity of a transmit synthesised by the
     array, bench/foldy_lax_reference.py) is symmetric for a reciprocal medium; `reciprocity` is
     |Σ_{a≠a'} Q Q^T*| / Σ_{a≠a'} |Q|² over frequencies and realisations (1: symmetric; ≈ 0: independent).
+
+    `enhancement_se`, `enhancement_ladder_se`: jackknife standard errors over the realisations (each left out in
+    turn; NaN with fewer than 3).
     """
     v = _check(v, freqs)
     if gate is not None:
@@ -273,7 +277,7 @@ def cbs_enhancement(
     k = 2 * np.pi * np.asarray(freqs, dtype=np.float64) / c0
     el = np.asarray(elements, dtype=np.float64)[:, :2]
     ph = b @ el.T  # (N_b, N_u)
-    p = np.zeros((b.shape[0], s.shape[0]))
+    p = np.zeros((v.shape[0], b.shape[0], s.shape[0]))  # per realisation, summed over frequencies
     n_a = s.shape[0]
     # index of −a in b
     ret = np.array([int(np.argmin(np.linalg.norm(b + a[None, :], axis=1))) for a in s])
@@ -284,19 +288,42 @@ def cbs_enhancement(
     den = 0.0
     for m in range(k.size):
         r = _project(v[:, m], float(k[m]), ph)  # (n_real, N_b, N_θ)
-        p += np.sum(np.abs(r) ** 2, axis=0)
+        p += np.abs(r) ** 2
         if exact:
             qq = r[:, ret, :] / cos_a[None, None, :]
             off = ~np.eye(n_a, dtype=bool)
             num += np.sum((qq * np.conj(np.swapaxes(qq, 1, 2)))[:, off])
             den += float(np.sum(np.abs(qq[:, off]) ** 2))
     q = np.linalg.norm(b[:, None, :] + s[None, :, :], axis=2)  # (N_b, N_θ)
+    bw = bin_width if bin_width is not None else float(np.min(np.diff(np.unique(np.round(b[:, 0], 12)))))
+    cone = _cone(p.sum(axis=0), q, ret, q_out, bw)
+    # Jackknife over the realisations (each left out in turn): the enhancements' standard errors.
+    n_real = p.shape[0]
+    se = {"enhancement": float("nan"), "enhancement_ladder": float("nan")}
+    if n_real >= 3:
+        loo = [_cone(p.sum(axis=0) - p[r], q, ret, q_out, bw) for r in range(n_real)]
+        for key in se:
+            x = np.array([c[key] for c in loo])
+            se[key] = float(np.sqrt((n_real - 1) / n_real * np.sum((x - x.mean()) ** 2)))
+    rec = float(abs(num) / den) if exact and den > 0 else float("nan")
+    return {
+        **cone,
+        "enhancement_se": se["enhancement"],
+        "enhancement_ladder_se": se["enhancement_ladder"],
+        "reciprocity": rec,
+    }
+
+
+def _cone(p: np.ndarray, q: np.ndarray, ret: np.ndarray, q_out: float, bw: float) -> dict[str, Any]:
+    """`cbs_enhancement`'s cone from P(b, a) (N_b, N_θ) summed over realisations and frequencies: the envelope
+    E_out(b) E_in(a) divided out, the profile in bins of |b + a|, its value at b = −a over the mean outside the
+    cone and over the Gaussian ladder's extrapolation to q = 0."""
+    n_a = p.shape[1]
     outside = q > q_out
-    e_out = np.array([p[i, outside[i]].mean() if outside[i].any() else np.nan for i in range(b.shape[0])])
+    e_out = np.array([p[i, outside[i]].mean() if outside[i].any() else np.nan for i in range(p.shape[0])])
     ratio = p / e_out[:, None]
     e_in = np.array([np.nanmean(ratio[outside[:, j], j]) for j in range(n_a)])
     pn = ratio / e_in[None, :]
-    bw = bin_width if bin_width is not None else float(np.min(np.diff(np.unique(np.round(b[:, 0], 12)))))
     edges = np.arange(0.0, q.max() + bw, bw) + 0.5 * bw
     edges = np.concatenate([[0.0], edges])
     centres, profile = [], []
@@ -309,7 +336,6 @@ def cbs_enhancement(
     base = float(np.nanmean(pn[valid & outside]))
     prof = np.array(profile) / base
     peak = float(np.nanmean(pn[ret, np.arange(n_a)]) / base)
-    rec = float(abs(num) / den) if exact and den > 0 else float("nan")
     qc = np.array(centres)
     flat = float(np.std(prof[qc > q_out])) if np.any(qc > q_out) else float("nan")
     # Over a ladder that depends on q (a small array, which sees the halo's lateral profile through b + a):
@@ -322,7 +348,6 @@ def cbs_enhancement(
         "ladder0": ladder0,
         "q": qc,
         "profile": prof,
-        "reciprocity": rec,
         "flatness": flat,
     }
 

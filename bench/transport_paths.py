@@ -401,6 +401,10 @@ def main(argv: list[str] | None = None) -> int:
         ("contrast slope × ℓ_s", lambda x: -float(x["ci"]["slope"]) * s.ls_c),
     ):
         print(f"  {name}: paths {get(res):.2f}, Foldy–Lax {get(fl):.2f}")
+    print(
+        f"  CBS's jackknife standard error over the realisations: paths ±{res['cbs']['enhancement_ladder_se']:.2f}, "
+        f"Foldy–Lax ±{fl['cbs']['enhancement_ladder_se']:.2f}"
+    )
     return 0
 
 

@@ -5,7 +5,7 @@
     .venv/bin/python bench/validate_background.py --dim 3 --quick
     .venv/bin/python bench/validate_background.py --layer cbs=True --layer single_scattering=field --match-dispersion
     .venv/bin/python bench/validate_background.py --layer envelope=diffusion --layer cbs=True \
-        --layer single_scattering=field --match-dispersion --slab        # the README's comparison
+        --layer single_scattering=field --match-dispersion --slab        # 2026-12-02's comparison (docs/validation.md)
     .venv/bin/python bench/validate_background.py --layer envelope=diffusion --layer cbs=True \
         --layer single_scattering=field --layer angular=halo --layer memory=True --match-dispersion --slab
                                                      # the memory-effect option (docs/design.md §6.5)
@@ -190,15 +190,13 @@ def measure(
     q_out = max(0.2, 2 * s.c0 / s.f_c / (s.n_side * s.pitch))  # outside the cone and the aperture's λ/D
     cbs = bm.cbs_enhancement(v, freqs, s.elements(), sines, s.c0, s.dim, gate=(t_on + 5e-6, s.t_end), q_out=q_out)
     # The same by the paths' age (the figure above is weighted by the early, brightest part of its gate).
-    cbs_age = {
-        (a, b): float(
-            bm.cbs_enhancement(
+    cbs_age = {}  # (enhancement over the ladder, its jackknife standard error)
+    for a, b in CBS_AGES:
+        if t_on + b * 1e-6 <= s.t_end:
+            c = bm.cbs_enhancement(
                 v, freqs, s.elements(), sines, s.c0, s.dim, gate=(t_on + a * 1e-6, t_on + b * 1e-6), q_out=q_out
-            )["enhancement_ladder"]
-        )
-        for a, b in CBS_AGES
-        if t_on + b * 1e-6 <= s.t_end
-    }
+            )
+            cbs_age[(a, b)] = (float(c["enhancement_ladder"]), float(c["enhancement_ladder_se"]))
     # The fit ends 5 ℓ_s deep, or one pulse length (c0/2B) above the slab's bottom: a confocal point shallower
     # than that is reached at its time by no path that touched the bottom (causality), so the slab's depth
     # does not bias the slope there (it ended 1.5 ℓ_s above the bottom before: 1–2.5 ℓ_s in 3-D, 1–3.5 now).
@@ -332,6 +330,7 @@ def compare(
         "model": mod,
         "ls_meas": ls_meas,
         "n_model": n_m,
+        "focal_return": bool(layer_kw.get("focal_return", False)),
         "t_model": t_model,
         "t_all": time.perf_counter() - t0,
     }
@@ -439,6 +438,14 @@ def report(res: dict[str, Any]) -> None:
     if parts:
         print("  contrast slope × ℓ_s by depth range (inside the fit): " + "; ".join(parts))
     flat = [fl["cbs"]["flatness"], mod["cbs"]["flatness"]]
+    e_fl, e_mod = (float(r["cbs"]["enhancement_ladder"]) for r in (fl, mod))
+    se_fl, se_mod = (float(r["cbs"]["enhancement_ladder_se"]) for r in (fl, mod))
+    sig = float(np.hypot(se_fl, se_mod))
+    print(
+        f"  CBS over the ladder with its jackknife standard error over the realisations: FL {e_fl:.2f} ± "
+        f"{se_fl:.2f}, model {e_mod:.2f} ± {se_mod:.2f}; model − FL {e_mod - e_fl:+.2f} ± {sig:.2f} "
+        f"({abs(e_mod - e_fl) / sig:.1f} σ); model − 2.3: {(e_mod - 2.3) / se_mod:+.1f} σ"
+    )
     print(
         f"  CBS peak over the mean outside the cone (separable envelope): FL {fl['cbs']['enhancement']:.2f}, "
         f"model {mod['cbs']['enhancement']:.2f}; the ladder extrapolated to q = 0: FL {fl['cbs']['ladder0']:.2f}, "
@@ -448,7 +455,8 @@ def report(res: dict[str, Any]) -> None:
         print(
             "  CBS enhancement over the ladder by age after the surface echo: "
             + "; ".join(
-                f"{a:g}–{b:g} µs FL {fl['cbs_age'][(a, b)]:.2f}, model {mod['cbs_age'][(a, b)]:.2f}"
+                f"{a:g}–{b:g} µs FL {fl['cbs_age'][(a, b)][0]:.2f} ± {fl['cbs_age'][(a, b)][1]:.2f}, "
+                f"model {mod['cbs_age'][(a, b)][0]:.2f} ± {mod['cbs_age'][(a, b)][1]:.2f}"
                 for a, b in fl["cbs_age"]
             )
         )
@@ -475,14 +483,24 @@ def report(res: dict[str, Any]) -> None:
                 + "; model/FL dB " + " ".join(f"{x:+.1f}" for x in ratio)
             )  # fmt: skip
     if fl["orders"]["focused"]:
+        # With the focal return the beads' grid also carries the orders ≥ 2 whose ends a focus sees (docs/design.md
+        # §6.6): the model's grid is then not its first order alone.
+        grid = "grid" if res.get("focal_return") else "first"
         print(
             "  the same by order, dB re FL's whole at Δx = 0 (first order: FL's on its redrawn scatterers, the "
-            "model's focused speckle; the rest: orders ≥ 2):"
+            "model's focused speckle; the rest: orders ≥ 2"
+            + (
+                "; the model's grid: its beads' grid, the first order and the focal return; its rest: the Gaussian "
+                "field)"
+                if grid == "grid"
+                else ")"
+            )
+            + ":"
         )
         for zl, (f1, fm) in fl["orders"]["focused"].items():
             m1, mm = mod["focused_orders"][zl]
             ref = fl["focused"][zl][0]
-            parts = (("FL first", f1), ("model first", m1), ("FL rest", fm), ("model rest", mm))
+            parts = (("FL first", f1), (f"model {grid}", m1), ("FL rest", fm), ("model rest", mm))
             cells = [n + " " + " ".join(f"{10 * np.log10(x / ref):+.1f}" for x in p) for n, p in parts]
             print(f"    {zl:g} ℓ_s: " + "; ".join(cells))
     print(
