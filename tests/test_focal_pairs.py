@@ -20,13 +20,14 @@ C0 = 1500.0
 def test_every_cell_is_paired_with_its_partner_and_the_separations_follow_their_shares() -> None:
     """`pair_offsets`: the partner's partner is the cell, inside the grid; a depth whose separations are all 0 pairs
     every cell with itself, one all at 3 steps along x pairs every cell 3 steps away but at the grid's edge; on a
-    wide grid the share of cells per separation is the one asked for (the share of the paths' energy)."""
+    wide grid the share of cells per separation is the one asked for (the share of the paths' energy), per axis and
+    jointly."""
     nx, ny, nz = 300, 200, 32
     q = np.array([0.2, 0.1, 0.3, 0.0, 0.4, 0.0])
-    sep = np.zeros((2, nz, 6))
-    sep[:, 0, 0] = 1.0  # all coincident
-    sep[0, 1, 3], sep[1, 1, 0] = 1.0, 1.0  # 3 steps along x
-    sep[0, 2:], sep[1, 2:] = q, q[::-1] / q.sum()  # a mix: one tiling per depth, so the shares hold over depths
+    sep = np.zeros((nz, 6, 6))
+    sep[0, 0, 0] = 1.0  # all coincident
+    sep[1, 0, 3] = 1.0  # 3 steps along x
+    sep[2:] = np.outer(q[::-1] / q.sum(), q)  # a mix, separable: one tiling per depth, so the shares hold over depths
     off = pair_offsets((nx, ny, nz), sep, np.random.default_rng(1))
     ix, iy = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
     for z in range(nz):
@@ -46,6 +47,28 @@ def test_every_cell_is_paired_with_its_partner_and_the_separations_follow_their_
     assert np.all(gain[:, :, 0] == np.float32(np.sqrt(2.0))) and np.all(gain[:, :, 1] == 1.0)
 
 
+def test_the_pairs_separations_are_drawn_jointly_not_per_axis() -> None:
+    """Paths whose ends lie 4 steps apart along x or along y, never both nor neither: the drawn pairs keep that
+    joint law (no cell is its own partner, none 4 steps apart on both axes), where the product of the two marginals
+    would put a quarter of the cells at each; the joint shares of a non-separable mix hold within 0.03."""
+    nx, ny, nz = 240, 240, 8
+    ring = np.zeros((nz, 5, 5))
+    ring[:, 0, 4] = ring[:, 4, 0] = 0.5
+    off = pair_offsets((nx, ny, nz), ring, np.random.default_rng(2))
+    ax, ay = np.abs(off[0]), np.abs(off[1])
+    interior = (slice(8, nx - 8), slice(8, ny - 8))  # away from the edges, where tiles shrink
+    both = ((ax == 4) & (ay == 4))[interior].mean()
+    neither = ((ax == 0) & (ay == 0))[interior].mean()
+    assert both == 0.0 and neither < 0.02
+    np.testing.assert_allclose(((ax == 4) & (ay == 0))[interior].mean(), 0.5, atol=0.03)
+    mix = np.zeros((nz, 3, 3))
+    mix[:, 0, 0], mix[:, 0, 2], mix[:, 1, 1], mix[:, 2, 0] = 0.1, 0.3, 0.4, 0.2
+    off = pair_offsets((nx, ny, nz), mix, np.random.default_rng(3))
+    code = np.abs(off[1]) * 3 + np.abs(off[0])
+    got = np.bincount(code.ravel(), minlength=9).reshape(3, 3) / code.size
+    np.testing.assert_allclose(got, mix[0], atol=0.03)
+
+
 def test_a_pair_of_cells_is_the_two_point_path_with_its_reversed_partner() -> None:
     """(F6): a pair of cells with one amplitude is, at the elements, the path received at each end and transmitted
     from the other — t [G(u, r_a) e^{−ik(a·x_b + c z)} b_θ(r_b) + G(u, r_b) e^{−ik(a·x_a + c z)} b_θ(r_a)], each
@@ -61,7 +84,9 @@ def test_a_pair_of_cells_is_the_two_point_path_with_its_reversed_partner() -> No
     ss = SingleScatteringField(lay, si, f, np.ones((1, 1)), f, C0, 3, ap, 6e-3, np.random.default_rng(0))
     assert ss.axes is not None and ss.keep is not None
     light = np.full(ss.nz, 1e-3)
-    ss.add_focal_return(np.ones((1, ss.nz)), None, light, np.eye(1, 41)[None].repeat(2, 0).repeat(ss.nz, 1))
+    coincident = np.zeros((ss.nz, 41, 41))
+    coincident[:, 0, 0] = 1.0
+    ss.add_focal_return(np.ones((1, ss.nz)), None, light, coincident)
     ss.draw_beads = False
     ss.advance()
     assert ss.fr_state is not None
@@ -119,11 +144,12 @@ def test_the_pairs_tables_take_the_paths_intensity_and_leave_its_separation_to_t
     assert depths[j] == pytest.approx(2e-3) and light[j] == pytest.approx(2e-3)
     assert var[0, j] == pytest.approx(var_f2p[0, j] / 2, rel=1e-9)
     assert kept.min() == pytest.approx(0.0, abs=1e-6) and np.sum(kept < 1) == 1
-    assert sep.shape == (2, depths.size, P.PAIR_MAX_STEPS + 1) and np.allclose(sep.sum(axis=2), 1.0)
+    n = P.PAIR_MAX_STEPS + 1
+    assert sep.shape == (depths.size, n, n) and np.allclose(sep.sum(axis=(1, 2)), 1.0)
     var_apart, kept_apart, _, sep_apart = P.focal_pairs(_path(0.6e-3), *args, *tail, 0.2e-3)
     np.testing.assert_allclose(var_apart, var, rtol=1e-9)
     np.testing.assert_allclose(kept_apart, kept, atol=1e-9)
-    assert sep_apart[0, j, 3] == pytest.approx(1.0) and sep_apart[1, j, 0] == pytest.approx(1.0)
+    assert sep_apart[j, 0, 3] == pytest.approx(1.0)  # 3 steps along x, none along y
     with pytest.raises(ValueError, match="spacing"):
         P.focal_pairs(_path(0.0), *args, *tail, 0.0)
 

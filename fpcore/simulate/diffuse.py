@@ -752,7 +752,7 @@ def focal_return_tables(
     """The focal return on the beads' grid (docs/design.md §6.6): its variance (n_sub, nz), g₁ per depth (None if
     frozen; a path of length 2d, DWS), the share of the energy the Gaussian field keeps by path length (s grid,
     (n_sub, N_s)), the lighting depth per grid depth (None without the rig's grid of sines) and, with
-    focal_return_pairs, the pairs' separations per axis and depth (`paths.focal_pairs`, F6; else None). Walks in the
+    focal_return_pairs, the pairs' joint lateral separations by depth (`paths.focal_pairs`, F6; else None). Walks in the
     layer (`paths.draw_paths`, first scatterings weighted by the incident extinction)
     summed by `paths.focal_return` with the rig's foci: the transmits' span of sines and the array's aperture per
     lateral axis (a focus needs ≥ 2 transmits along each)."""

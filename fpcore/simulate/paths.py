@@ -436,9 +436,11 @@ def focal_pairs(
       ρ_R = ½[(R/R_n)^{d−1} + (R/R₁)^{d−1}] the element energy of its ends against a point at the apparent range
       R (what D counts besides the defocus);
     - the lighting depth (N_z,), as `focal_return`'s;
-    - the lateral separations (n_axes, N_z, PAIR_MAX_STEPS + 1): per axis and depth, the distribution of
-      |Δ|/spacing rounded (ν'-weighted at the band's centre, the last bin holding the longer ones), each row
-      summing to 1 (all at 0 where no path lands)."""
+    - the lateral separations (N_z, n_y, PAIR_MAX_STEPS + 1), n_y = PAIR_MAX_STEPS + 1 in 3D and 1 in 2D: per depth,
+      the joint distribution of (|Δy|, |Δx|)/spacing rounded (ν'-weighted at the band's centre, the last bin of each
+      axis holding the longer ones), each depth summing to 1 (all at (0, 0) where no path lands). Joint, not per
+      axis: the ends of a path lie a distance apart in any direction, so the product of the axes' marginals would
+      put pairs at short separations on both axes that no path has."""
     if spacing <= 0:
         raise ValueError(f"spacing: expected the grid's lateral step > 0 m, got {spacing}")
     var, kept, light, sep = _focal_sums(
@@ -478,9 +480,10 @@ def _focal_sums(
     pairs = pair_spacing is not None
     if pairs and rig is None:
         raise ValueError("rig: expected the rig's foci for the pairs (F6 takes F2′ of the collapsed paths)")
-    sep = np.zeros((axes, dep.size, PAIR_MAX_STEPS + 1)) if pairs else None
+    n_y = PAIR_MAX_STEPS + 1 if axes == 2 else 1
+    sep = np.zeros((dep.size, n_y, PAIR_MAX_STEPS + 1)) if pairs else None
     if sep is not None:
-        sep[:, :, 0] = 1.0
+        sep[:, 0, 0] = 1.0
     if paths.n_paths == 0:
         return var, kept, (dep.copy() if rig is not None else None), sep
     w = paths.walk
@@ -565,13 +568,14 @@ def _focal_sums(
         moved = np.bincount(age[drawn], weights=moved_e[drawn], minlength=s_grid.size)
         kept[m] = np.where(total > 0, np.clip(1.0 - moved / np.maximum(total, 1e-300), 0.0, 1.0), 1.0)
         if sep is not None and pair_spacing is not None and m == f.size // 2:  # weighted by ν' at the band's centre
-            for j in range(axes):
-                steps = np.minimum(np.rint(np.abs(delta[:, j]) / pair_spacing), PAIR_MAX_STEPS).astype(np.int64)
-                flat = cell[in_grid] * (PAIR_MAX_STEPS + 1) + steps[in_grid]
-                hist = np.bincount(flat, weights=weight[in_grid], minlength=dep.size * (PAIR_MAX_STEPS + 1))
-                hist = hist.reshape(dep.size, PAIR_MAX_STEPS + 1)
-                mass = hist.sum(axis=1, keepdims=True)
-                sep[j] = np.where(mass > 0, hist / np.maximum(mass, 1e-300), sep[j])
+            steps = np.minimum(np.rint(np.abs(delta) / pair_spacing), PAIR_MAX_STEPS).astype(np.int64)  # (N, axes)
+            sy = steps[:, 1] if axes == 2 else np.zeros(steps.shape[0], dtype=np.int64)
+            n_x = PAIR_MAX_STEPS + 1
+            flat = (cell[in_grid] * n_y + sy[in_grid]) * n_x + steps[in_grid, 0]
+            hist = np.bincount(flat, weights=weight[in_grid], minlength=dep.size * n_y * n_x)
+            hist = hist.reshape(dep.size, n_y, n_x)
+            mass = hist.sum(axis=(1, 2), keepdims=True)
+            sep[:] = np.where(mass > 0, hist / np.maximum(mass, 1e-300), sep)
     return var, kept, light, sep
 
 

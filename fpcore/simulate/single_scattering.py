@@ -143,8 +143,8 @@ class SingleScatteringField:
         self._fr_beams: np.ndarray | None = None
         self._fr_g1: np.ndarray | None = None
         self.fr_state: np.ndarray | None = None
-        # The focal return as two-point paths (F6, `add_focal_return`'s separations): the per-axis distribution of
-        # the pairs' lateral separations by depth, and, drawn with the first grid, each cell's partner (`pair_cells`).
+        # The focal return as two-point paths (F6, `add_focal_return`'s separations): the joint distribution of the
+        # pairs' lateral separations by depth, and, drawn with the first grid, each cell's partner (`pair_cells`).
         self._fr_sep: np.ndarray | None = None
         self._pairs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         # False leaves the focal return alone on the grid, the beads' reflectivity zero (a diagnostic: the focal
@@ -199,8 +199,9 @@ class SingleScatteringField:
         variance (n_sub, nz) per unit volume at each sub-band centre and depth (extinction included), and its g₁
         between frames per depth (nz,), None when frozen; `light` (nz,), the depth below the surface at which each
         depth's focal return is lit by the transmits' beams (its paths' ends, `paths.focal_return`), or None: its own.
-        With `separations` (n_axes, nz, n_steps) (`paths.focal_pairs`, F6 of docs/design.md §6.6) the cells are
-        paired, each pair one path whose ends lie that many grid steps apart per axis: a cell holds the term received
+        With `separations` (nz, n_y, n_steps) (`paths.focal_pairs`, F6 of docs/design.md §6.6: per depth the joint
+        distribution of (|m_y|, |m_x|), n_y = 1 in 2D) the cells are paired, each pair one path whose ends lie that
+        many grid steps apart per axis: a cell holds the term received
         at it and transmitted from its partner (each transmit's phase and beam taken at the partner), the partner the
         reversed term, with the same amplitude (√2 × where a cell is its own partner: the ends coincide); the
         variance is then the paths' ν' (`paths.focal_pairs`). Set before the first spectrum."""
@@ -213,11 +214,13 @@ class SingleScatteringField:
         if lit is not None and lit.shape != (self.nz,):
             raise ValueError(f"light: expected a depth per grid depth, shape {(self.nz,)}, got {lit.shape}")
         sep = None if separations is None else np.asarray(separations, dtype=np.float64)
-        axes = 2 if self.dim == 3 else 1
-        if sep is not None and (sep.ndim != 3 or sep.shape[:2] != (axes, self.nz) or sep.shape[2] < 1):
-            raise ValueError(f"separations: expected shape ({axes}, {self.nz}, n_steps), got {sep.shape}")
-        if sep is not None and (np.any(sep < 0) or not np.allclose(sep.sum(axis=2), 1.0, atol=1e-6)):
-            raise ValueError("separations: expected non-negative probabilities summing to 1 per axis and depth")
+        if sep is not None and (
+            sep.ndim != 3 or sep.shape[0] != self.nz or (self.dim == 2 and sep.shape[1] != 1) or 0 in sep.shape
+        ):
+            n_y = "1" if self.dim == 2 else "n_y"
+            raise ValueError(f"separations: expected shape ({self.nz}, {n_y}, n_steps), got {sep.shape}")
+        if sep is not None and (np.any(sep < 0) or not np.allclose(sep.sum(axis=(1, 2)), 1.0, atol=1e-6)):
+            raise ValueError("separations: expected non-negative probabilities summing to 1 per depth")
         self._fr_var = v
         self._fr_light = lit
         self._fr_g1 = None if g1 is None else np.asarray(g1, dtype=np.float32)
@@ -478,16 +481,20 @@ PAIR_CODE_STEPS = 40
 
 def pair_offsets(shape: tuple[int, int, int], separations: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Each cell's offset to its partner (2, nx, ny, nz) int16, in grid steps per lateral axis (F6 of docs/design.md
-    §6.6): the cells of every depth paired so that the pairs' separations per axis follow `separations` (n_axes, nz,
-    n_steps): the share separations[axis, depth, m] of the cells has |offset| = m (each cell carries the same
-    variance, so this is the share of the paths' energy). Each depth is cut along y into strips of
-    height 2m_y (1 for m_y = 0), each strip along x into tiles of width 2m_x, the tile's cell (x, y) paired with
-    (x ± m_x, y ± m_y) across its halves: the partner's partner is the cell, and a cell is its own partner only
-    where m_x = m_y = 0. At the grid's edges a tile too wide shrinks to the widest that fits."""
+    §6.6): the cells of every depth paired so that the pairs' separations follow `separations` (nz, n_y, n_steps),
+    per depth the joint distribution of (|m_y|, |m_x|) (n_y = 1: none along y): the share separations[z, m_y, m_x]
+    of the cells has those offsets (each cell carries the same variance, so this is the share of the paths'
+    energy). Each depth is cut along y into strips of height 2m_y (1 for m_y = 0), the share of the cells in strips
+    of m_y its marginal; each strip along x into tiles of width 2m_x drawn from the conditional distribution given
+    the strip's m_y, the tile's cell (x, y) paired with (x ± m_x, y ± m_y) across its halves: the partner lies in the
+    same strip, so the partner's partner is the cell, and a cell is its own partner only where m_x = m_y = 0. At the
+    grid's edges a tile too wide shrinks to the widest that fits (a strip then takes the x-marginal)."""
     nx, ny, nz = shape
     sep = np.asarray(separations, dtype=np.float64)
-    if sep.shape[2] > PAIR_CODE_STEPS + 1:
-        raise ValueError(f"separations: expected at most {PAIR_CODE_STEPS + 1} steps, got {sep.shape[2]}")
+    if sep.ndim != 3 or sep.shape[0] != nz:
+        raise ValueError(f"separations: expected shape ({nz}, n_y, n_steps), got {sep.shape}")
+    if max(sep.shape[1], sep.shape[2]) > PAIR_CODE_STEPS + 1:
+        raise ValueError(f"separations: expected at most {PAIR_CODE_STEPS + 1} steps, got {sep.shape[1:]}")
     off = np.zeros((2, nx, ny, nz), dtype=np.int16)
 
     def tiling(n: int, q: np.ndarray) -> np.ndarray:
@@ -509,11 +516,15 @@ def pair_offsets(shape: tuple[int, int, int], separations: np.ndarray, rng: np.r
         return out
 
     for z in range(nz):
-        oy = tiling(ny, sep[1, z]) if sep.shape[0] > 1 else np.zeros(ny, dtype=np.int16)
+        q_y = sep[z].sum(axis=1)
+        q_x = sep[z].sum(axis=0)
+        oy = tiling(ny, q_y)
         y0 = 0
         while y0 < ny:
-            height = 2 * abs(int(oy[y0])) if oy[y0] != 0 else 1
-            off[0, :, y0 : y0 + height, z] = tiling(nx, sep[0, z])[:, None]
+            m_y = abs(int(oy[y0]))
+            height = 2 * m_y if m_y else 1
+            given = sep[z, m_y] / q_y[m_y] if m_y < q_y.size and q_y[m_y] > 0 else q_x  # the conditional on m_y
+            off[0, :, y0 : y0 + height, z] = tiling(nx, given)[:, None]
             off[1, :, y0 : y0 + height, z] = oy[None, y0 : y0 + height]
             y0 += height
     return off
