@@ -229,32 +229,41 @@ def headline(quick: bool, n_real: int, n_walks: int, layer_kw: dict[str, Any], r
     models = {"model": sc}
     if layer_kw:
         models["model+"] = sim.scenario("sinking-sphere", quick=quick, n_frames=1, **layer_kw)
-    for name, scen in models.items():  # the same seeds: the same beads and Gaussian field in both
+    # The paths' first order is the beads' speckle alone: the scenario without its focal return, whose grid would
+    # otherwise carry the orders ≥ 2 a second time beside the paths' (the default's grid holds both since
+    # 2026-12-07; F6 of docs/design.md §6.6).
+    beads = {"beads": sim.scenario("sinking-sphere", quick=quick, n_frames=1, focal_return=False)}
+    for name, scen in {**models, **beads}.items():  # the same seeds: the same beads and Gaussian field in each
         bg = scen.without_targets()._background()
         assert bg is not None
         orders = [bg.fork(np.random.default_rng(4000 + r)).next_orders() for r in range(n_real)]
         parts[name] = np.stack([m for m, _ in orders])
         parts[name + " first"] = np.stack([f for _, f in orders])
+    parts["speckle"] = parts.pop("beads first")
+    del parts["beads"]
     depths = layer.z_surface + np.arange(1, 9) * layer.ls
     conf = {
         name: bm.confocal_profile(v, freqs, el, sines, sc.c0, 3, depths, 5e-3, n_lateral=7, band=sc.pulse).mean(axis=0)
         for name, v in parts.items()
     }
-    # the fogs: the beads' speckle (the default model's first order) plus the paths; each model's own whole
-    fogs = {"paths": conf["model first"] + conf["paths"]}
+    # the fogs: the beads' speckle (the model's first order alone) plus the paths; each model's own whole
+    fogs = {"paths": conf["speckle"] + conf["paths"]}
     fogs.update({n: conf[n] + conf[n + " first"] for n in models})
     print(f"\nsinking-sphere ({'quick' if quick else 'full'}): confocal background by depth (patch ±5 mm), dB")
-    print("  depth  GF/paths (orders ≥ 2)  beads/paths  " + "  ".join(f"fog {n}/paths" for n in models))
+    print(
+        "  depth  GF/paths (orders ≥ 2)  grid/paths (beads, with the focal return if on)  beads/paths  "
+        + "  ".join(f"fog {n}/paths" for n in models)
+    )
     for j, z in enumerate(depths - layer.z_surface):
         print(
             f"  {z / layer.ls:3.0f} ℓ_s  {db(conf['model'][j] / conf['paths'][j]):+6.1f}"
-            f"  {db(conf['model first'][j] / conf['paths'][j]):+6.1f}  "
+            f"  {db(conf['model first'][j] / conf['paths'][j]):+6.1f}"
+            f"  {db(conf['speckle'][j] / conf['paths'][j]):+6.1f}  "
             + "  ".join(f"{db(fogs[n][j] / fogs['paths'][j]):+6.1f}" for n in models)
         )
-    parts["speckle"] = parts["model first"]
     contrast_slopes(sc, parts)
     # The fogs' time envelopes (a changed model's beads are drawn on its own grid: only its whole fog compares)
-    t, e_p = bm.time_envelope(parts["paths"] + parts["model first"], freqs, sc.pulse)
+    t, e_p = bm.time_envelope(parts["paths"] + parts["speckle"], freqs, sc.pulse)
     env = {n: bm.time_envelope(parts[n] + parts[n + " first"], freqs, sc.pulse)[1] for n in models}
     t_on = 2 * layer.z_surface / sc.c0
     print("  time envelope of the fog (the beads' speckle and the orders ≥ 2), model/paths (dB):")
