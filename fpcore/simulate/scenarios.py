@@ -102,6 +102,7 @@ _DEPTHS = {"paper": ((9.9e-3, 10.5e-3), 10.0e-3), "legacy": ((8e-3, 8.6e-3), 7.5
 #: 1/97 → 1/153 and 1/82 – 1/85 (quick, frames 0 and 31), 1/137 and 1/152 (the full array, frame 0): sphere 1
 #: settles 9.4 → 10.0 mm and sphere 2 sits at 9.6 mm (0.2 and 0.4 mm higher, sized by the contrast's slope for a
 #: margin from 1/150): 1/73 → 1/136 and 1/75 – 1/78 (quick), 1/103 and 1/115 (full), every one within 1/50–1/150.
+#: With the pairs' separations drawn jointly (the same evening): 1/82 → 1/137 and 1/76 – 1/76, 1/94 and 1/102.
 _SPHERE_DEPTHS = {"paper": ((9.4e-3, 10.0e-3), 9.6e-3), "legacy": _DEPTHS["legacy"]}
 #: The paper's stated centre depths (main text: 9 and 7 mm), sphere 1 settling to 9 mm: pass as
 #: ``sink=PAPER_POSITIONS[0], sphere2_depth=PAPER_POSITIONS[1]``.
