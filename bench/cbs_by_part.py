@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -27,8 +26,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import background_metrics as bm  # noqa: E402
 import foldy_lax_reference as flr  # noqa: E402
 import validate_background as vb  # noqa: E402
-
-from fpcore.simulate.medium import DiffuseBackground, ScatteringLayer  # noqa: E402
 
 #: Gates after the surface echo (µs): the youngest paths, then older ones, then the whole record after 5 µs.
 AGES = ((5.0, 10.0), (10.0, 20.0), (20.0, 30.0), (5.0, np.inf))
@@ -55,31 +52,6 @@ def cone_row(v: np.ndarray, s: flr.Setup, sines: np.ndarray, freqs: np.ndarray) 
 def energy(v: np.ndarray, s: flr.Setup, freqs: np.ndarray) -> np.ndarray:
     """Mean |V|² in each gate."""
     return np.array([float(np.mean(np.abs(bm.gate_spectra(v, freqs, g)) ** 2)) for g in gates(s)])
-
-
-def pairs_alone(s: flr.Setup, sines: np.ndarray, layer_kw: dict[str, Any], n_real: int) -> np.ndarray:
-    """The beads' grid with the beads' reflectivity zero (`SingleScatteringField.draw_beads`): the pairs alone."""
-    layer = ScatteringLayer(
-        z_surface=s.z_surface, ls=s.ls_c, la=np.inf, density=1000.0, sound_speed=1500.0, frame_displacement=0.0,
-        **layer_kw,
-    )  # fmt: skip
-    out = []
-    for r in range(n_real):
-        bg = DiffuseBackground(
-            layer,
-            s.elements(),
-            sines,
-            s.window,
-            s.band,
-            s.c0,
-            s.dim,
-            s.aperture_radius,
-            np.random.default_rng(1000 + r),
-        )
-        assert bg.single is not None
-        bg.single.draw_beads = False
-        out.append(bg.next_orders()[1])
-    return np.stack(out)
 
 
 def main() -> int:
@@ -113,7 +85,7 @@ def main() -> int:
         "model, the beads alone (no focal return)": beads,
     }
     if args.pairs_alone:
-        parts["model, the pairs alone"] = pairs_alone(s, sines, {**base, **FOCAL}, args.pairs_alone)
+        parts["model, the pairs alone"] = vb.model_orders(s, sines, args.pairs_alone, {**base, **FOCAL}, beads=False)[1]
     share = {
         "Foldy–Lax, first order": energy(v1, s, freqs) / energy(v_fl, s, freqs),
         "model, the beads' grid (beads and pairs)": energy(grid, s, freqs) / energy(whole, s, freqs),

@@ -110,45 +110,17 @@ def focal_split(
     keeps, against Foldy–Lax's orders ≥ 2, the paths and the default Gaussian field (`parts`: "FL", "paths", "model"),
     the same seeds as the default model. Printed: the confocal background by depth and the focused matrix's profile
     against the in–out separation, dB re Foldy–Lax, and the element-averaged envelopes."""
-    from fpcore.simulate.diffuse import DiffuseBackground
-    from fpcore.simulate.medium import ScatteringLayer
-
     freqs = data["freqs"]
     n_real = parts["model"].shape[0]
-    layer = ScatteringLayer(
-        z_surface=s.z_surface,
-        ls=s.ls_c,
-        la=np.inf,
-        density=1000.0,
-        sound_speed=1500.0,
-        frame_displacement=0.0,
-        **{**layer_kw, "focal_return": True},
-    )
-    kept, alone = [], []
-    for r in range(n_real):  # vb.model_orders' seeds: the default's Gaussian noise
-        bg = DiffuseBackground(
-            layer,
-            s.elements(),
-            sines,
-            s.window,
-            s.band,
-            s.c0,
-            s.dim,
-            s.aperture_radius,
-            np.random.default_rng(1000 + r),
-        )
-        assert bg.single is not None
-        bg.single.draw_beads = False
-        multiple, focal = bg.next_orders()
-        assert focal is not None
-        kept.append(multiple)
-        alone.append(focal)
+    # vb.model_orders' seeds: the default's Gaussian noise
+    whole, alone = vb.model_orders(s, sines, n_real, {**layer_kw, "focal_return": True}, beads=False)
+    kept = whole - alone
     split = {
         "FL": parts["FL"],
         "paths": parts["paths"],
         "GF": parts["model"],
-        "GF kept": np.stack(kept),
-        "FR alone": np.stack(alone),
+        "GF kept": kept,
+        "FR alone": alone,
     }
     depths = data["depths"]
     args_c = (freqs, s.elements(), sines, s.c0, s.dim, depths, vb.contrast_half_width(s))

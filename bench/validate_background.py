@@ -128,11 +128,13 @@ def model_realisations(
 
 
 def model_orders(
-    s: flr.Setup, sines: np.ndarray, n_real: int, layer_kw: dict[str, Any], seed0: int = 1000
+    s: flr.Setup, sines: np.ndarray, n_real: int, layer_kw: dict[str, Any], seed0: int = 1000, beads: bool = True
 ) -> tuple[np.ndarray, np.ndarray]:
-    """V and its first-order part (the beads' focused speckle, zero without single_scattering="field"), both
-    (n_real, N_f, N_u, N_θ), one independent rng per realisation; V minus the first order is the Gaussian field
-    (orders ≥ 2)."""
+    """V and its first-order part (the beads' focused speckle, zero without single_scattering="field"; with the
+    focal return, the beads' grid: the speckle and the focal return), both (n_real, N_f, N_u, N_θ), one independent
+    rng per realisation; V minus that part is the Gaussian field (orders ≥ 2). `beads=False` draws the beads'
+    reflectivity zero (`SingleScatteringField.draw_beads`: the focal return alone on the grid), each realisation
+    built afresh (the flag shapes the grid's tables, which `DiffuseBackground.cached` shares)."""
     layer = ScatteringLayer(
         z_surface=s.z_surface,
         ls=s.ls_c,
@@ -143,18 +145,13 @@ def model_orders(
         **layer_kw,
     )
     out, first = [], []
+    rig = (layer, s.elements(), sines, s.window, s.band, s.c0, s.dim, s.aperture_radius)
     for r in range(n_real):  # the rig's tables built once, each realisation its own draws (`DiffuseBackground.cached`)
-        bg = DiffuseBackground.cached(
-            layer,
-            s.elements(),
-            sines,
-            s.window,
-            s.band,
-            s.c0,
-            s.dim,
-            s.aperture_radius,
-            np.random.default_rng(seed0 + r),
-        )
+        rng = np.random.default_rng(seed0 + r)
+        bg = DiffuseBackground.cached(*rig, rng) if beads else DiffuseBackground(*rig, rng)
+        if not beads:
+            assert bg.single is not None
+            bg.single.draw_beads = False
         multiple, single = bg.next_orders()
         first.append(np.zeros_like(multiple) if single is None else single)
         out.append(multiple + first[-1])
