@@ -296,12 +296,13 @@ def cbs_enhancement(
             den += float(np.sum(np.abs(qq[:, off]) ** 2))
     q = np.linalg.norm(b[:, None, :] + s[None, :, :], axis=2)  # (N_b, N_θ)
     bw = bin_width if bin_width is not None else float(np.min(np.diff(np.unique(np.round(b[:, 0], 12)))))
-    cone = _cone(p.sum(axis=0), q, ret, q_out, bw)
+    total = p.sum(axis=0)
+    cone = _cone(total, q, ret, q_out, bw)
     # Jackknife over the realisations (each left out in turn): the enhancements' standard errors.
     n_real = p.shape[0]
     se = {"enhancement": float("nan"), "enhancement_ladder": float("nan")}
     if n_real >= 3:
-        loo = [_cone(p.sum(axis=0) - p[r], q, ret, q_out, bw) for r in range(n_real)]
+        loo = [_cone(total - p[r], q, ret, q_out, bw) for r in range(n_real)]
         for key in se:
             x = np.array([c[key] for c in loo])
             se[key] = float(np.sqrt((n_real - 1) / n_real * np.sum((x - x.mean()) ** 2)))

@@ -35,19 +35,9 @@ FOCAL = {"focal_return": True, "focal_return_pairs": True, "focal_return_shallow
 
 
 def gates(s: flr.Setup) -> list[tuple[float, float]]:
-    """The AGES as absolute times (s), each ending at the record's end at the latest."""
+    """The AGES that start inside the record, as absolute times (s), each ending at the record's end at the latest."""
     t_on = 2 * s.z_surface / s.c0
     return [(t_on + a * 1e-6, min(t_on + b * 1e-6, s.t_end)) for a, b in AGES if t_on + a * 1e-6 < s.t_end]
-
-
-def cone_row(v: np.ndarray, s: flr.Setup, sines: np.ndarray, freqs: np.ndarray) -> list[tuple[float, float]]:
-    """(enhancement over the ladder, its jackknife error) in each gate."""
-    q_out = max(0.2, 2 * s.c0 / s.f_c / (s.n_side * s.pitch))  # validate_background's
-    out = []
-    for g in gates(s):
-        c = bm.cbs_enhancement(v, freqs, s.elements(), sines, s.c0, s.dim, gate=g, q_out=q_out)
-        out.append((float(c["enhancement_ladder"]), float(c["enhancement_ladder_se"])))
-    return out
 
 
 def energy(v: np.ndarray, s: flr.Setup, freqs: np.ndarray) -> np.ndarray:
@@ -67,10 +57,9 @@ def main() -> int:
     s, data = flr.load(path)
     freqs = data["freqs"]
     sines = vb.transmit_sines(s.dim)
-    expo = -float(np.polyfit(np.log(freqs / s.f_c), np.log(data["ls"]), 1)[0])
     base = {
         "envelope": "diffusion", "cbs": True, "single_scattering": "field", "angular": "halo",
-        "thickness": s.thickness, "width": s.width, "ls_exponent": round(expo, 3), "f_ref": s.f_c,
+        "thickness": s.thickness, "width": s.width, "ls_exponent": vb.dispersion_exponent(s, data), "f_ref": s.f_c,
     }  # fmt: skip
     v_fl = flr.plane_waves(data["K"], freqs, s.elements(), sines, s.c0, s.pitch, s.dim)
     v1 = flr.plane_waves(flr.single_scattering(s, data), freqs, s.elements(), sines, s.c0, s.pitch, s.dim)
@@ -93,10 +82,11 @@ def main() -> int:
         # the same seeds draw the same beads with and without the focal return: their share of the default's whole
         "model, the beads alone (no focal return)": energy(beads, s, freqs) / energy(whole, s, freqs),
     }
-    head = " | ".join(f"{a:g}–{b:g} µs" for a, b in AGES if 2 * s.z_surface / s.c0 + a * 1e-6 < s.t_end)
+    ages = [(a, b) for a, b in AGES if 2 * s.z_surface / s.c0 + a * 1e-6 < s.t_end]
+    head = " | ".join(f"{a:g}–{b:g} µs" for a, b in ages)
     print(f"{s.dim}-D rig ({path.name}): CBS over the ladder ± jackknife by age after the surface echo: {head}")
     for name, v in parts.items():
-        row = " | ".join(f"{e:.2f} ± {se:.2f}" for e, se in cone_row(v, s, sines, freqs))
+        row = " | ".join(f"{e:.2f} ± {se:.2f}" for e, se in vb.cbs_by_age(v, s, sines, freqs, ages).values())
         extra = f"   share of the gate's energy {' / '.join(f'{x:.3f}' for x in share[name])}" if name in share else ""
         print(f"  {name:44s} {row}{extra}", flush=True)
     return 0

@@ -201,18 +201,19 @@ def headline(quick: bool, n_real: int, n_walks: int, layer_kw: dict[str, Any], r
     models = {"model": sc}
     if layer_kw:
         models["model+"] = sim.scenario("sinking-sphere", quick=quick, n_frames=1, **layer_kw)
-    # The paths' first order is the beads' speckle alone: the scenario without its focal return, whose grid would
-    # otherwise carry the orders ≥ 2 a second time beside the paths' (the default's grid holds both since
-    # 2026-12-07; F6 of docs/design.md §6.6).
-    beads = {"beads": sim.scenario("sinking-sphere", quick=quick, n_frames=1, focal_return=False)}
-    for name, scen in {**models, **beads}.items():  # the same seeds: the same beads and Gaussian field in each
+    for name, scen in models.items():  # the same seeds: the same beads and Gaussian field in each
         bg = scen.without_targets()._background()
         assert bg is not None
         orders = [bg.fork(np.random.default_rng(4000 + r)).next_orders() for r in range(n_real)]
         parts[name] = np.stack([m for m, _ in orders])
         parts[name + " first"] = np.stack([f for _, f in orders])
-    parts["speckle"] = parts.pop("beads first")
-    del parts["beads"]
+    # The paths' first order is the beads' speckle alone, the same seeds' beads drawn by the scenario without its
+    # focal return: the default's grid holds the orders ≥ 2 too (F6 of docs/design.md §6.6), which the paths carry.
+    bg = sim.scenario("sinking-sphere", quick=quick, n_frames=1, focal_return=False).without_targets()._background()
+    assert bg is not None
+    speckle = [bg.fork(np.random.default_rng(4000 + r)).next_orders()[1] for r in range(n_real)]
+    assert all(x is not None for x in speckle)
+    parts["speckle"] = np.stack(speckle)
     depths = layer.z_surface + np.arange(1, 9) * layer.ls
     conf = {
         name: bm.confocal_profile(v, freqs, el, sines, sc.c0, 3, depths, 5e-3, n_lateral=7, band=sc.pulse).mean(axis=0)

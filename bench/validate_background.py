@@ -184,16 +184,11 @@ def measure(
     t_on = 2 * s.z_surface / s.c0
     t, env = bm.time_envelope(v, freqs, s.band)
     fc = bm.frequency_correlation_width(v, freqs, gate=(t_on, s.t_end))
-    q_out = max(0.2, 2 * s.c0 / s.f_c / (s.n_side * s.pitch))  # outside the cone and the aperture's λ/D
-    cbs = bm.cbs_enhancement(v, freqs, s.elements(), sines, s.c0, s.dim, gate=(t_on + 5e-6, s.t_end), q_out=q_out)
+    cbs = bm.cbs_enhancement(
+        v, freqs, s.elements(), sines, s.c0, s.dim, gate=(t_on + 5e-6, s.t_end), q_out=cbs_q_out(s)
+    )
     # The same by the paths' age (the figure above is weighted by the early, brightest part of its gate).
-    cbs_age = {}  # (enhancement over the ladder, its jackknife standard error)
-    for a, b in CBS_AGES:
-        if t_on + b * 1e-6 <= s.t_end:
-            c = bm.cbs_enhancement(
-                v, freqs, s.elements(), sines, s.c0, s.dim, gate=(t_on + a * 1e-6, t_on + b * 1e-6), q_out=q_out
-            )
-            cbs_age[(a, b)] = (float(c["enhancement_ladder"]), float(c["enhancement_ladder_se"]))
+    cbs_age = cbs_by_age(v, s, sines, freqs, [(a, b) for a, b in CBS_AGES if t_on + b * 1e-6 <= s.t_end])
     # The fit ends 5 ℓ_s deep, or one pulse length (c0/2B) above the slab's bottom: a confocal point shallower
     # than that is reached at its time by no path that touched the bottom (causality), so the slab's depth
     # does not bias the slope there (it ended 1.5 ℓ_s above the bottom before: 1–2.5 ℓ_s in 3-D, 1–3.5 now).
@@ -222,6 +217,30 @@ def measure(
         "ci": ci,
         "z_fit": z_fit,
     }
+
+
+def cbs_q_out(s: flr.Setup) -> float:
+    """|b + a| beyond which the CBS profile is the ladder: outside the cone and the aperture's λ/D, at least 0.2."""
+    return max(0.2, 2 * s.c0 / s.f_c / (s.n_side * s.pitch))
+
+
+def cbs_by_age(
+    v: np.ndarray, s: flr.Setup, sines: np.ndarray, freqs: np.ndarray, ages: list[tuple[float, float]]
+) -> dict[tuple[float, float], tuple[float, float]]:
+    """The CBS enhancement over the ladder and its jackknife standard error in each gate (a, b) µs after the surface
+    echo (b may be inf: to the record's end)."""
+    t_on = 2 * s.z_surface / s.c0
+    out = {}
+    for a, b in ages:
+        gate = (t_on + a * 1e-6, min(t_on + b * 1e-6, s.t_end))
+        c = bm.cbs_enhancement(v, freqs, s.elements(), sines, s.c0, s.dim, gate=gate, q_out=cbs_q_out(s))
+        out[(a, b)] = (float(c["enhancement_ladder"]), float(c["enhancement_ladder_se"]))
+    return out
+
+
+def dispersion_exponent(s: flr.Setup, data: dict[str, np.ndarray]) -> float:
+    """ℓ_s(f) = ℓ_s(f_c) (f/f_c)^(−x): x fitted on the Foldy–Lax medium's ℓ_s(f), rounded to 3 decimals."""
+    return round(-float(np.polyfit(np.log(data["freqs"] / s.f_c), np.log(data["ls"]), 1)[0]), 3)
 
 
 def contrast_half_width(s: flr.Setup) -> float:
@@ -296,8 +315,8 @@ def compare(
         layer_kw = {**layer_kw, "thickness": s.thickness, "width": s.width}
         print(f"  {dim}D model with the FL slab's {s.thickness * 1e3:.1f} mm thickness, {s.width * 1e3:.0f} mm width")
     if match_dispersion:  # ℓ_s(f) = ℓ_s(f_c) (f/f_c)^(−ls_exponent), fitted on the FL medium's ℓ_s(f)
-        expo = -float(np.polyfit(np.log(freqs / s.f_c), np.log(data["ls"]), 1)[0])
-        layer_kw = {**layer_kw, "ls_exponent": round(expo, 3), "f_ref": s.f_c}
+        expo = dispersion_exponent(s, data)
+        layer_kw = {**layer_kw, "ls_exponent": expo, "f_ref": s.f_c}
         print(f"  {dim}D model layer with the FL dispersion: ls_exponent = {expo:.3f}, f_ref = {s.f_c:g} Hz")
     sines = transmit_sines(dim)
     t0 = time.perf_counter()
