@@ -57,7 +57,7 @@ from ..acquisition import element_grid_axes
 from ..geometry import cosines
 from .confocal_notch import ConfocalNotch, keep_envelope
 from .memory import MemoryKernel, block_energy_gain, block_kernel, effective_spread, grid_kernel, lattice_steps
-from .paths import FocalRig, draw_paths, focal_pairs, focal_return
+from .paths import FocalRig, Paths, draw_paths, focal_pairs, focal_return
 from .reciprocity import ElementReciprocity, ReciprocalBlock
 from .single_scattering import SingleScatteringField
 from .waves import Band, TimeWindow
@@ -752,10 +752,39 @@ def focal_return_tables(
     """The focal return on the beads' grid (docs/design.md §6.6): its variance (n_sub, nz), g₁ per depth (None if
     frozen; a path of length 2d, DWS), the share of the energy the Gaussian field keeps by path length (s grid,
     (n_sub, N_s)), the lighting depth per grid depth (None without the rig's grid of sines) and, with
-    focal_return_pairs, the pairs' joint lateral separations by depth (`paths.focal_pairs`, F6; else None). Walks in the
-    layer (`paths.draw_paths`, first scatterings weighted by the incident extinction)
-    summed by `paths.focal_return` with the rig's foci: the transmits' span of sines and the array's aperture per
-    lateral axis (a focus needs ≥ 2 transmits along each)."""
+    focal_return_pairs, the pairs' joint lateral separations by depth (`paths.focal_pairs`, F6; else None). The
+    walks and the rig's foci of `focal_walks`, summed by `paths.focal_return` (or `paths.focal_pairs`)."""
+    walks, s_grid, rig, span, aperture = focal_walks(layer, single, elements, sines, centres, c0, dim, window)
+    args = (walks, single.depths, s_grid, centres, layer.ls_at(centres), layer.la, c0, span)
+    sep: np.ndarray | None = None
+    light: np.ndarray | None
+    if layer.focal_return_pairs:
+        if rig is None:
+            raise ValueError("focal_return_pairs: expected transmits on a full grid of sines (the rig's foci, F2′)")
+        var, kept, light, sep = focal_pairs(*args, aperture, layer.z_surface, rig, single.hx)
+    else:
+        var, kept, light = focal_return(*args, aperture, layer.z_surface, rig)
+    g1 = None
+    if layer.frame_displacement > 0:
+        v = c0 if layer.energy_velocity is None else layer.energy_velocity
+        g1 = layer.correlation_per_frame(2 * single.depths / v, c0, float(np.mean(centres))).astype(np.float32)
+    return var, g1, (s_grid, kept), light, sep
+
+
+def focal_walks(
+    layer: ScatteringLayer,
+    single: SingleScatteringField,
+    elements: np.ndarray,
+    sines: np.ndarray,
+    centres: np.ndarray,
+    c0: float,
+    dim: int,
+    window: TimeWindow,
+) -> tuple[Paths, np.ndarray, FocalRig | None, np.ndarray, np.ndarray]:
+    """What the focal return's tables sum (`focal_return_tables`): the walks in the layer (`paths.draw_paths`, first
+    scatterings weighted by the incident extinction, FOCAL_WALKS from FOCAL_SEED), the path-length grid, the rig's
+    foci (`FocalRig.from_grid`: None unless the sines form a grid), and per lateral axis the transmits' span of sines
+    and the array's aperture (a focus needs ≥ 2 transmits along each)."""
     axes = 2 if dim == 3 else 1
     el, si = np.asarray(elements, dtype=np.float64), np.asarray(sines, dtype=np.float64)
     span, aperture = [], []
@@ -787,19 +816,7 @@ def focal_return_tables(
     s_grid = np.linspace(0.0, s_end, FOCAL_LENGTH_BINS)
     # The rig's own transmits and beams (eq. F2′): the focal return lit as its ends are, where the sines form a grid.
     rig = FocalRig.from_grid(si, np.array(aperture), dim, np.array(single.beam_aperture), single.beam_wavelength)
-    args = (walks, single.depths, s_grid, centres, layer.ls_at(centres), layer.la, c0, np.array(span))
-    sep: np.ndarray | None = None
-    light: np.ndarray | None
-    if layer.focal_return_pairs:
-        if rig is None:
-            raise ValueError("focal_return_pairs: expected transmits on a full grid of sines (the rig's foci, F2′)")
-        var, kept, light, sep = focal_pairs(*args, np.array(aperture), layer.z_surface, rig, single.hx)
-    else:
-        var, kept, light = focal_return(*args, np.array(aperture), layer.z_surface, rig)
-    g1 = None
-    if layer.frame_displacement > 0:
-        g1 = layer.correlation_per_frame(2 * single.depths / v, c0, f_c).astype(np.float32)
-    return var, g1, (s_grid, kept), light, sep
+    return walks, s_grid, rig, np.array(span), np.array(aperture)
 
 
 def _beads_stream(rng: np.random.Generator) -> np.random.Generator:

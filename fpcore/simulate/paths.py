@@ -496,21 +496,12 @@ def _focal_sums(
     in_ages = (age >= 0) & (age < s_grid.size)
     drawn = in_ages & in_grid  # (F3): a path moves its share out of the Gaussian field only where the grid draws it
     delta = paths.end[:, :axes] - paths.start[w, :axes]
-    per_area = paths.start_weight[w] / paths.start_area
     span = np.broadcast_to(np.asarray(transmit_span, dtype=np.float64), (axes,))
     ap = np.broadcast_to(np.asarray(aperture, dtype=np.float64), (axes,))
-    # The legs' obliquity (F1): the transmits' ⟨1/c_θ⟩ over the span of sines, the receive rays' ⟨1/cos⟩ from the end's
-    # range R over the aperture (uniform; tabulated in R, smooth).
-    q_in = secant_over_sines(span)
-    r_tab = np.linspace(z_surface, z_surface + max(float(dn.max(initial=0.0)), 1e-9), 257)
-    q_out = np.interp(z_surface + dn, r_tab, secant_over_aperture(ap, r_tab))
+    q_in, q_out = leg_obliquities(paths, span, ap, z_surface)
 
     def path_energy(lf: float) -> np.ndarray:
-        """E of (F3) per path at ℓ_s(f) = lf: the walk's weight re-weighted to lf and ℓ_a, both legs' extinction."""
-        log_w = (paths.order - 1) * np.log(paths.ls_ref / lf) - paths.length * (
-            1.0 / lf - 1.0 / paths.ls_ref + 1.0 / la
-        )
-        return per_area * np.exp(log_w - (d1 * q_in + dn * q_out) * (1.0 / lf + 1.0 / la))
+        return path_energies(paths, lf, la, z_surface, q_in, q_out)
 
     light = None
     if rig is not None:
@@ -577,6 +568,31 @@ def _focal_sums(
             mass = hist.sum(axis=(1, 2), keepdims=True)
             sep[:] = np.where(mass > 0, hist / np.maximum(mass, 1e-300), sep)
     return var, kept, light, sep
+
+
+def leg_obliquities(
+    paths: Paths, transmit_span: np.ndarray, aperture: np.ndarray, z_surface: float
+) -> tuple[float, np.ndarray]:
+    """The legs' obliquity (F1): the transmits' ⟨1/c_θ⟩ over the span of sines, and per path the receive rays'
+    ⟨1/cos⟩ from its last end's range over the aperture (uniform; tabulated in the range, smooth)."""
+    dn = paths.end[:, 2] - z_surface
+    q_in = float(secant_over_sines(np.asarray(transmit_span, dtype=np.float64)))
+    r_tab = np.linspace(z_surface, z_surface + max(float(dn.max(initial=0.0)), 1e-9), 257)
+    return q_in, np.interp(z_surface + dn, r_tab, secant_over_aperture(np.asarray(aperture, dtype=np.float64), r_tab))
+
+
+def path_energies(
+    paths: Paths, lf: float, la: float, z_surface: float, q_in: float | np.ndarray, q_out: float | np.ndarray
+) -> np.ndarray:
+    """E of (F3) per path at ℓ_s(f) = lf, per unit area of first scatterings: the walk's weight re-weighted to lf
+    and ℓ_a, and both legs' extinction over the ends' depths d₁, d_n below the surface with the obliquities q_in (the
+    transmits' mean secant) and q_out (the receive rays', per path or one), (docs/design.md §6.6)."""
+    w = paths.walk
+    d1 = paths.start[w, 2] - z_surface
+    dn = paths.end[:, 2] - z_surface
+    log_w = (paths.order - 1) * np.log(paths.ls_ref / lf) - paths.length * (1.0 / lf - 1.0 / paths.ls_ref + 1.0 / la)
+    per_area = paths.start_weight[w] / paths.start_area
+    return per_area * np.exp(log_w - (d1 * q_in + dn * q_out) * (1.0 / lf + 1.0 / la))
 
 
 def _between(x: float, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
