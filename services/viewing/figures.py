@@ -54,6 +54,21 @@ class Target:
     c_gamma: float | None = None
 
 
+def _reference_value(grid: Any, target: Target) -> float:
+    """γ at the target's detection: the largest γ on the nodes next to `found` (a refined peak lies between
+    nodes), or γ's maximum when that is not positive."""
+    g = np.asarray(target.gamma)
+    axes = (grid.x, grid.z) if grid.y is None else (grid.x, grid.y, grid.z)
+    coords = np.asarray(target.found, dtype=np.float64)
+    coords = coords[[0, 2]] if grid.y is None else coords
+    near = tuple(
+        slice(max(i - 1, 0), i + 2)
+        for i in (int(np.argmin(np.abs(np.asarray(a) - c))) for a, c in zip(axes, coords, strict=True))
+    )
+    value = float(g[near].max()) if g[near].size else 0.0
+    return value if value > 0 else max(float(g.max()), 1e-30)
+
+
 def peak_position(grid: Any, gamma: np.ndarray) -> np.ndarray:
     """[x, y, z] (m) of γ's maximum on a grid (``fpcore.grid.Grid`` or the wire ``Grid``; y = 0 in 2D)."""
     idx = np.unravel_index(int(np.argmax(gamma)), gamma.shape)
@@ -170,7 +185,10 @@ def targets_over_confocal(
         raise ValueError(f"confocal: shape {confocal.shape}, expected the grid's {grid.shape}")
     floor_db = 20 * math.log10(threshold)
     conf_db = 10 * np.log10(confocal / max(float(confocal.max()), 1e-30) + 1e-12)
-    gamma_db = [20 * np.log10(np.maximum(t.gamma, 1e-30) / max(float(t.gamma.max()), 1e-30)) for t in targets]
+    # Each γ in dB re its own value at the detection, not its map's maximum: γ is often largest just under the
+    # interface, where the detector's local null level is too (fpcore.metrics.detect), and a spot 0.56 × that
+    # maximum would vanish under the threshold (the demo's last frame, 2026-12-07).
+    gamma_db = [20 * np.log10(np.maximum(t.gamma, 1e-30) / _reference_value(grid, t)) for t in targets]
     secs = _sections(grid, targets)
     widths = [s.extent[1] - s.extent[0] for s in secs]
     height = abs(secs[0].extent[2] - secs[0].extent[3])
@@ -218,12 +236,13 @@ def targets_over_confocal(
                 elif in_plane:
                     ax.add_patch(Circle((h, v), RING_MM, fill=False, ls=":", lw=1.4, ec=colour))
                 if in_plane and row == 1 and t.c_gamma is not None:
+                    right = h > 0.5 * (sec.extent[0] + sec.extent[1])  # the label on the side with room for it
                     ax.text(
-                        h + RING_MM,
+                        h - RING_MM if right else h + RING_MM,
                         v + RING_MM,
                         f"C$_γ$ = {t.c_gamma:.1f}",
                         color=colour,
-                        ha="left",
+                        ha="right" if right else "left",
                         va="top",
                         fontsize=9,
                         fontweight="bold",
@@ -261,7 +280,7 @@ def targets_over_confocal(
             shrink=0.9,
             pad=0.01,
             aspect=15,
-            label=f"γ {targets[k].name} (dB re max)",
+            label=f"γ {targets[k].name} (dB re its detection)",
         )
     handles = []
     for k, t in enumerate(targets):
