@@ -5,6 +5,8 @@ an independent check of what the statistical background gets right and wrong (do
     .venv/bin/python bench/transport_paths.py --reference out/bench/fl_reference_3d_deep.npz --walks 6000
     .venv/bin/python bench/transport_paths.py --reference out/bench/fl_reference_3d_deep.npz --walks 6000 --beams
     .venv/bin/python bench/transport_paths.py --reuse --focal-split --model-realisations 12   # the focal return, split
+    .venv/bin/python bench/transport_paths.py --scenario --walks 8000  # the headline rig's exact paths, 6 × 8000 walks
+    .venv/bin/python bench/transport_paths.py --scenario --reuse --realisations 12 --walks 8000   # the saved 6, + 6
 
 The paths are drawn in the reference's slab (same ℓ_s(f) per frequency, lossless), their legs to the
 elements through the coherent wave along each straight ray, the transmits synthesised from the elements as
@@ -179,7 +181,12 @@ def headline(quick: bool, n_real: int, n_walks: int, layer_kw: dict[str, Any], r
     if reuse and saved.exists():
         with np.load(saved) as z:
             v_p = list(z["paths"][:n_real])
-        print(f"  paths: {len(v_p)} realisations from {saved}")
+            saved_walks = int(z["walks"]) if "walks" in z.files else None
+        each = f" ({saved_walks} walks each)" if saved_walks else ""
+        print(f"  paths: {len(v_p)} realisations from {saved}{each}")
+        if len(v_p) < n_real and saved_walks not in (None, n_walks):
+            raise SystemExit(f"--walks: the saved realisations have {saved_walks} walks each, got {n_walks}")
+    n_drawn = max(n_real - len(v_p), 0) if len(v_p) else 0
     for r in range(len(v_p), n_real):
         p = draw_paths(
             np.random.default_rng(3000 + r),
@@ -195,9 +202,9 @@ def headline(quick: bool, n_real: int, n_walks: int, layer_kw: dict[str, Any], r
         v_p.append(path_spectra(p, freqs, sc.c0, ls_f, rays, tx, la=layer.la))
         print(f"  paths {r + 1}/{n_real}: {p.n_walks} walks, {p.n_paths} path ends, {time.perf_counter() - t0:.0f} s")
     parts = {"paths": np.stack(v_p)}
-    if not (reuse and saved.exists()):
+    if not (reuse and saved.exists()) or n_drawn:  # a fresh set, or the saved one extended (its seeds, then the new)
         flr.OUT.mkdir(parents=True, exist_ok=True)
-        np.savez(saved, freqs=freqs, paths=parts["paths"])
+        np.savez(saved, freqs=freqs, paths=parts["paths"], walks=n_walks)
     models = {"model": sc}
     if layer_kw:
         models["model+"] = sim.scenario("sinking-sphere", quick=quick, n_frames=1, **layer_kw)
@@ -262,11 +269,13 @@ def contrast_slopes(sc: Any, parts: dict[str, np.ndarray]) -> None:
     for name in ("model", "model+"):
         if name in parts:
             fogs[f"{name} (its own fog)"] = parts[name + " first"] + parts[name]
+    per_fog: dict[str, np.ndarray] = {}
     for name, fog in fogs.items():
         i_t, water, m = vs._point_target_and_fog(
             layer, sc.probe, sc.sequence.sines, freqs, sc.c0, spec, s_out, list(fog), depths, 3
         )
         e = i_t / water
+        per_fog[name] = m
 
         def slope(fog_mean: np.ndarray, e: np.ndarray = e) -> float:
             return -float(np.polyfit(depths, np.log(e / fog_mean), 1)[0]) * ls_c
@@ -278,6 +287,20 @@ def contrast_slopes(sc: Any, parts: dict[str, np.ndarray]) -> None:
             + ", ".join(f"{db(m[j].mean() / m[0].mean()):+.1f}" for j in range(1, 5))
             + " dB"
         )
+    # The model's slope minus the paths', paired by realisation: the two fogs share the beads' speckle of each seed,
+    # so their difference is surer than the two errors above added (the echo e is the same target in both).
+    ref = per_fog.pop(next(iter(fogs)))
+    for name, m in per_fog.items():
+        if m.shape != ref.shape:
+            continue
+
+        def difference(both: np.ndarray) -> float:
+            fog_m, fog_p = both[: depths.size], both[depths.size :]  # the model's, the paths' (N_z,) each
+            return float(np.polyfit(depths, np.log(fog_m / fog_p), 1)[0]) * ls_c
+
+        both = np.concatenate([m, ref], axis=0).T  # (n_real, 2 N_z)
+        d, se = difference(both.mean(axis=0)), bm.jackknife_se(difference, both)
+        print(f"  slope {name} − paths, paired by realisation: {d:+.2f} ± {se:.2f}")
 
 
 def db(x: np.ndarray) -> np.ndarray:
