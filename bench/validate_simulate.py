@@ -182,7 +182,7 @@ def contrast_vs_depth() -> None:
             )
 
 
-def contrast_vs_depth_scenario(n_real: int = 4, **layer_overrides: Any) -> float:
+def contrast_vs_depth_scenario(n_real: int = 8, **layer_overrides: Any) -> float:
     """C_I of a point target at 1…5 ℓ_s in the quick sinking-sphere rig with the scenario's own medium and
     background (diffusion envelope, halo geometry, the beams' reciprocity, the beads' focused speckle, ℓ_s(f)
     and the ballistic filter ℓ_ext(f)): the slope of ln C_I against depth times ℓ_s(f_c), the paper's eq. (1)

@@ -180,9 +180,10 @@ def _granular_suspension(conventions: str = "paper", *, dim: int = 3, **override
         )
         # The orders ≥ 2 whose ends a focus sees, drawn as two-point paths on the beads' grid (F6 of docs/design.md
         # §6.6; the deeper paths stay in the Gaussian field): against the exact paths of the quick headline rig the
-        # fog is within −0.7 … +1.1 dB at 1 … 8 ℓ_s and the contrast falls as e^{−1.26 z/ℓ_s} (paths 1.21; without
-        # them −4.7 dB at 1 ℓ_s and 1.50); against Foldy–Lax all four figures pass in 2-D (slope 1.15 ± 0.03, FL
-        # 1.18 ± 0.03) and in 3-D the slope, the cone by age and the memory effect are Foldy–Lax's. Any of the focal
+        # fog is within −0.6 … +0.7 dB at 1 … 8 ℓ_s and the contrast falls as e^{−1.26 z/ℓ_s} (paths 1.25 ± 0.03, 12
+        # realisations; without them −4.7 dB at 1 ℓ_s and 1.50); against Foldy–Lax all four figures pass in 2-D (slope
+        # 1.18 ± 0.02, FL 1.18 ± 0.03) and in 3-D the slope, the cone by age and the memory effect are Foldy–Lax's
+        # (the CBS 7 % over: README, "The paper's regime"). Any of the focal
         # keys among the overrides replaces these three (focal_return=False turns the focal return off).
         if not _FOCAL_KEYS & overrides.keys():
             params.update(focal_return=True, focal_return_pairs=True, focal_return_shallow=True)
