@@ -105,7 +105,7 @@ def test_figure_draws_every_fingerprint_with_its_recorded_diameter(tmp_path: Pat
 
 def test_figure_rejects_bad_threshold(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["figure", str(SAMPLE), "--frame", "1", "--png", str(tmp_path / "x.png"), "--threshold", "1.5"]) == 2
-    assert "--threshold: expected a fraction of γ's maximum in (0, 1), got 1.5" in capsys.readouterr().err
+    assert "--threshold: expected a fraction of γ at the detection in (0, 1), got 1.5" in capsys.readouterr().err
 
 
 def test_figure_missing_frame(tmp_path: Path) -> None:

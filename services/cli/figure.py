@@ -13,7 +13,7 @@ __all__ = ["add_figure_parser", "run_figure"]
 def run_figure(args: argparse.Namespace) -> int:
     """`fp figure`: PNG of γ over the confocal image for one frame."""
     if not 0 < args.threshold < 1:
-        raise ValueError(f"--threshold: expected a fraction of γ's maximum in (0, 1), got {args.threshold:g}")
+        raise ValueError(f"--threshold: expected a fraction of γ at the detection in (0, 1), got {args.threshold:g}")
     out = to_figure(args.recording, args.frame, args.png, fingerprint=args.fingerprint, threshold=args.threshold)
     print(f"{out['png']}: frame {out['frame']}, {', '.join(out['fingerprints'])}")
     return 0
@@ -36,7 +36,8 @@ def add_figure_parser(sub: Any) -> argparse.ArgumentParser:
         "--threshold",
         type=float,
         default=0.6,
-        help="colour γ ≥ threshold·max, i.e. from 20·log10(threshold) dB to 0 dB (default 0.6: −4.4 dB)",
+        help="colour γ ≥ threshold × γ at the detection (γ's peak without one), i.e. from 20·log10(threshold) dB "
+        "to 0 dB and above (default 0.6: −4.4 dB)",
     )
     p.set_defaults(func=run_figure)
     return p

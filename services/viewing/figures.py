@@ -2,9 +2,11 @@
 
 Top row: the confocal image in dB (grey, −30…0 dB re its maximum), where a target deep in a scattering
 medium is lost in the multiple-scattering fog. Bottom row: the same sections with each target's γ-map
-over it, in dB re that map's maximum, one hue per target (red, green, …; the paper draws the 10 mm
-sphere in red and the 8 mm one in green). γ is a normalised amplitude (a Cauchy–Schwarz ratio,
-docs/design.md §4.7), so its dB are 20·log10(γ/γ_max); only γ ≥ ``threshold``·γ_max is coloured (0.6: −4.4 dB).
+over it, in dB re that map's value at the target's detection, one hue per target (red, green, …; the paper
+draws the 10 mm sphere in red and the 8 mm one in green). γ is a normalised amplitude (a Cauchy–Schwarz ratio,
+docs/design.md §4.7), so its dB are 20·log10(γ/γ_det); only γ ≥ ``threshold``·γ_det is coloured (0.6: −4.4 dB),
+and γ above γ_det takes the top colour (γ is often largest just under the interface, where the detector's local
+null level is high too, so a map's maximum is not the detection's scale).
 
 Both rows carry a white scale bar and, when the target's diameter is known (the fingerprint's
 ``diameter_m`` state, or the ground truth), the dashed outline of the sphere of that diameter centred
@@ -177,7 +179,7 @@ def targets_over_confocal(
     if not targets:
         raise ValueError("targets: expected at least one γ-map to draw")
     if not 0 < threshold < 1:
-        raise ValueError(f"threshold: expected a fraction of γ's maximum in (0, 1), got {threshold:g}")
+        raise ValueError(f"threshold: expected a fraction of γ at the detection in (0, 1), got {threshold:g}")
     for t in targets:
         if t.gamma.shape != grid.shape:
             raise ValueError(f"{t.name}: γ has shape {t.gamma.shape}, expected the grid's {grid.shape}")
