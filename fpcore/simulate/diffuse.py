@@ -67,8 +67,10 @@ if TYPE_CHECKING:
 
 __all__ = ["DiffuseBackground", "HaloGeometry", "aligned_spacing", "project_plane_waves", "reciprocal_pairs"]
 
-#: At most this many sub-bands for a dispersive medium: enough that ℓ_s changes by ≤ 25 % between neighbours.
+#: Sub-bands for a dispersive medium: enough that ℓ_s changes by at most SUB_BAND_LS_RATIO between neighbouring
+#: centres, and at most N_SUB_BANDS of them.
 N_SUB_BANDS = 8
+SUB_BAND_LS_RATIO = 1.25
 
 #: At most this many backgrounds' tables (geometry and envelopes, a few hundred MB each) kept for reuse by
 #: `DiffuseBackground.cached`, the least recently used dropped first.
@@ -321,7 +323,7 @@ class DiffuseBackground:
         self._norm2 = norm2
         # Sub-bands (one for a non-dispersive medium) and their triangular blending weights in f.
         ls_span = layer.ls_at(np.array([self.freqs[0], self.freqs[-1]]))
-        n_sub = 1 + int(np.ceil(np.log(float(ls_span.max() / ls_span.min())) / np.log(1.25) - 1e-9))
+        n_sub = 1 + int(np.ceil(np.log(float(ls_span.max() / ls_span.min())) / np.log(SUB_BAND_LS_RATIO) - 1e-9))
         n_sub = 1 if layer.ls_exponent == 0.0 else min(N_SUB_BANDS, n_f, max(n_sub, 2))
         self.centres = np.linspace(self.freqs[0], self.freqs[-1], n_sub) if n_sub > 1 else np.array([band.centre])
         self.blend = _triangles(self.freqs, self.centres)  # (n_sub, N_f)
