@@ -18,6 +18,11 @@ paths' field (their own first order plus the orders ≥ 2). With --beams (3-D): 
 transmits the array synthesises against the same lit by the speckle's model beam (`PlaneWaveBeams`, the simulator's
 `single_scattering` beam), confocal, by depth. With --focal-split: the model with the focal return split into the
 focal return alone and the Gaussian field it keeps, against Foldy–Lax, the paths and the default Gaussian field.
+With --scenario (the sinking-sphere rig; --full the 32×32 array): the paths lit by the simulator's beams
+(`PlaneWaveBeams`) and, with the same walks, by the transmits the elements synthesise (`Synthesised`), each set saved;
+the confocal fog by depth, the point target's contrast slope (paired by realisation), the CBS by age with each fog's
+plane-wave symmetry (only the synthesised paths are reciprocal as the array measures them: the CBS's reference), and
+the time envelopes.
 """
 
 from __future__ import annotations
@@ -175,36 +180,51 @@ def headline(quick: bool, n_real: int, n_walks: int, layer_kw: dict[str, Any], r
     l_max = sc.c0 * t_end - 2 * layer.z_surface
     reach = 0.5 * aperture + 20e-3 * float(np.max(np.abs(sines) / np.sqrt(1 - (sines**2).sum(1))[:, None])) + 5e-3
     lext_c = float(layer.l_ext_at(2.2e6))
-    v_p = []
+    pitch = float(np.min(np.diff(np.unique(np.round(el[:, 0], 9)))))
     t0 = time.perf_counter()
-    saved = flr.OUT / f"paths_headline_{'quick' if quick else 'full'}.npz"
-    if reuse and saved.exists():
-        with np.load(saved) as z:
-            v_p = list(z["paths"][:n_real])
-            saved_walks = int(z["walks"]) if "walks" in z.files else None
-        each = f" ({saved_walks} walks each)" if saved_walks else ""
-        print(f"  paths: {len(v_p)} realisations from {saved}{each}")
-        if len(v_p) < n_real and saved_walks not in (None, n_walks):
-            raise SystemExit(f"--walks: the saved realisations have {saved_walks} walks each, got {n_walks}")
-    n_drawn = max(n_real - len(v_p), 0) if len(v_p) else 0
-    for r in range(len(v_p), n_real):
-        p = draw_paths(
-            np.random.default_rng(3000 + r),
-            3,
-            float(layer.ls_at(2.2e6)),
-            n_walks,
-            l_max,
-            layer.z_surface,
-            start_half_width=reach,
-            start_depth=12 * lext_c,
-            start_decay=lext_c,
-        )
-        v_p.append(path_spectra(p, freqs, sc.c0, ls_f, rays, tx, la=layer.la))
-        print(f"  paths {r + 1}/{n_real}: {p.n_walks} walks, {p.n_paths} path ends, {time.perf_counter() - t0:.0f} s")
-    parts = {"paths": np.stack(v_p)}
-    if not (reuse and saved.exists()) or n_drawn:  # a fresh set, or the saved one extended (its seeds, then the new)
-        flr.OUT.mkdir(parents=True, exist_ok=True)
-        np.savez(saved, freqs=freqs, paths=parts["paths"], walks=n_walks)
+
+    def path_set(tag: str, transmits: PlaneWaveBeams | Synthesised) -> np.ndarray:
+        """n_real realisations of the paths' field with these transmits, saved (and with `reuse`, loaded and
+        extended): seeds 3000 + r, n_walks walks each."""
+        saved = flr.OUT / f"paths_headline_{'quick' if quick else 'full'}{tag}.npz"
+        v_p: list[np.ndarray] = []
+        if reuse and saved.exists():
+            with np.load(saved) as z:
+                v_p = list(z["paths"][:n_real])
+                saved_walks = int(z["walks"]) if "walks" in z.files else None
+            each = f" ({saved_walks} walks each)" if saved_walks else ""
+            print(f"  paths: {len(v_p)} realisations from {saved}{each}")
+            if len(v_p) < n_real and saved_walks not in (None, n_walks):
+                raise SystemExit(f"--walks: the saved realisations have {saved_walks} walks each, got {n_walks}")
+        n_drawn = n_real - len(v_p)
+        for r in range(len(v_p), n_real):
+            p = draw_paths(
+                np.random.default_rng(3000 + r),
+                3,
+                float(layer.ls_at(2.2e6)),
+                n_walks,
+                l_max,
+                layer.z_surface,
+                start_half_width=reach,
+                start_depth=12 * lext_c,
+                start_decay=lext_c,
+            )
+            v_p.append(path_spectra(p, freqs, sc.c0, ls_f, rays, transmits, la=layer.la))
+            print(
+                f"  paths{tag} {r + 1}/{n_real}: {p.n_walks} walks, {p.n_paths} path ends, "
+                f"{time.perf_counter() - t0:.0f} s"
+            )
+        out = np.stack(v_p)
+        if n_drawn > 0:  # a fresh set, or the saved one extended (its seeds, then the new)
+            flr.OUT.mkdir(parents=True, exist_ok=True)
+            np.savez(saved, freqs=freqs, paths=out, walks=n_walks)
+        return out
+
+    parts = {"paths": path_set("", tx)}
+    # The same walks with the transmits synthesised by the elements as the probe fires them: reciprocal as the array
+    # measures it, the CBS's reference (the beams above are the simulator's own model of a transmit, not the receive's
+    # functions, so their retro-reflected element is no diagonal one: their plane-wave symmetry is 0.77–0.83).
+    synthesised = path_set("_synthesised", Synthesised(sines, pitch))
     models = {"model": sc}
     if layer_kw:
         models["model+"] = sim.scenario("sinking-sphere", quick=quick, n_frames=1, **layer_kw)
@@ -241,12 +261,23 @@ def headline(quick: bool, n_real: int, n_walks: int, layer_kw: dict[str, Any], r
             f"  {db(conf['speckle'][j] / conf['paths'][j]):+6.1f}  "
             + "  ".join(f"{db(fogs[n][j] / fogs['paths'][j]):+6.1f}" for n in models)
         )
-    contrast_slopes(sc, parts)
+    # The transmits as the array synthesises them against the beams (the simulator's transmit model), the same walks
+    conf_syn = bm.confocal_profile(synthesised, freqs, el, sines, sc.c0, 3, depths, 5e-3, n_lateral=7, band=sc.pulse)
+    print(
+        "  the paths' orders ≥ 2 with the transmits synthesised by the elements / with the beams at 1 … 8 ℓ_s (dB): "
+        + " / ".join(f"{db(a / b):+.1f}" for a, b in zip(conf_syn.mean(axis=0), conf["paths"], strict=True))
+    )
+    contrast_slopes(sc, {**parts, "synthesised": synthesised})
+    split = {"paths, orders ≥ 2": parts["paths"], "paths synthesised, orders ≥ 2": synthesised}
+    split["paths synthesised + beads"] = synthesised + parts["speckle"]
+    split.update({"model, Gaussian field": parts["model"], "model, beads' grid": parts["model first"]})
+    cbs_check(sc, {**fogs_of(parts, models), **split})
     # The fogs' time envelopes (a changed model's beads are drawn on its own grid: only its whole fog compares)
     t, e_p = bm.time_envelope(parts["paths"] + parts["speckle"], freqs, sc.pulse)
     env = {n: bm.time_envelope(parts[n] + parts[n + " first"], freqs, sc.pulse)[1] for n in models}
     t_on = 2 * layer.z_surface / sc.c0
-    print("  time envelope of the fog (the beads' speckle and the orders ≥ 2), model/paths (dB):")
+    env["paths synthesised"] = bm.time_envelope(synthesised + parts["speckle"], freqs, sc.pulse)[1]
+    print("  time envelope of the fog (the beads' speckle and the orders ≥ 2), each / the paths' (dB):")
     for tt in (1, 2, 5, 10, 20, 30, 40, 50):
         i = int(np.argmin(np.abs(t - t_on - tt * 1e-6)))
         print(f"    +{tt:2d} µs: " + "  ".join(f"{n} {db(e[i] / e_p[i]):+5.1f}" for n, e in env.items()))
@@ -269,6 +300,8 @@ def contrast_slopes(sc: Any, parts: dict[str, np.ndarray]) -> None:
     for name in ("model", "model+"):
         if name in parts:
             fogs[f"{name} (its own fog)"] = parts[name + " first"] + parts[name]
+    if "synthesised" in parts:  # the same paths, the transmits synthesised by the elements
+        fogs["paths synthesised (the beads' speckle + the paths)"] = parts["speckle"] + parts["synthesised"]
     per_fog: dict[str, np.ndarray] = {}
     for name, fog in fogs.items():
         i_t, water, m = vs._point_target_and_fog(
@@ -301,6 +334,40 @@ def contrast_slopes(sc: Any, parts: dict[str, np.ndarray]) -> None:
         both = np.concatenate([m, ref], axis=0).T  # (n_real, 2 N_z)
         d, se = difference(both.mean(axis=0)), bm.jackknife_se(difference, both)
         print(f"  slope {name} − paths, paired by realisation: {d:+.2f} ± {se:.2f}")
+
+
+def fogs_of(parts: dict[str, np.ndarray], models: dict[str, Any]) -> dict[str, np.ndarray]:
+    """The whole fogs' spectra (n_real, N_f, N_u, N_θ): the paths' (the beads' speckle and the paths) and each
+    model's own (its beads' grid and its Gaussian field)."""
+    out = {"paths": parts["speckle"] + parts["paths"]}
+    out.update({n: parts[n + " first"] + parts[n] for n in models})
+    return out
+
+
+#: The CBS's gates, µs after the surface echo (`validate_background.cbs_by_age`'s).
+CBS_AGES = ((5.0, 10.0), (10.0, 20.0), (20.0, 30.0), (5.0, np.inf))
+
+
+def cbs_check(sc: Any, fogs: dict[str, np.ndarray]) -> None:
+    """The coherent-backscattering enhancement over the ladder (`background_metrics.cbs_enhancement`) of each of
+    `fogs` (spectra (n_real, N_f, N_u, N_θ): the exact paths' fog, each model's, and any of their parts), by age
+    after the surface echo, with jackknife errors: the issue's third figure in the headline rig itself, where the
+    Foldy–Lax slab's 4 mm array is not the rig."""
+    layer = sc.layer
+    el, sines, freqs = sc.probe.positions, sc.sequence.sines, sc.freqs
+    t_on = 2 * layer.z_surface / sc.c0
+    t_end = sc.window.t0 + sc.window.duration
+    aperture = float(np.sqrt(np.prod(sc.probe.aperture)))
+    q_out = max(0.2, 2 * sc.c0 / sc.pulse.centre / aperture)  # outside the cone and the aperture's λ/D
+    print(f"  CBS over the ladder by age after the surface echo (|b + a| > {q_out:.2f} the ladder), ± jackknife:")
+    print(" " * 35 + " | ".join(f"{a:.0f}–{b:.0f} µs" for a, b in CBS_AGES) + "   (symmetry over the last gate)")
+    for name, v in fogs.items():
+        row = []
+        for a, b in CBS_AGES:
+            gate = (t_on + a * 1e-6, min(t_on + b * 1e-6, t_end))
+            c = bm.cbs_enhancement(v, freqs, el, sines, sc.c0, 3, gate=gate, q_out=q_out)
+            row.append(f"{c['enhancement_ladder']:.2f} ± {c['enhancement_ladder_se']:.2f}")
+        print(f"    {name:30s} " + " | ".join(row) + f"   symmetry {c['reciprocity']:.3f}")
 
 
 def db(x: np.ndarray) -> np.ndarray:
