@@ -79,6 +79,9 @@ def quantiles(x: np.ndarray, w: np.ndarray, q: tuple[float, ...]) -> list[float]
 
 
 def report(name: str, bg: DiffuseBackground, elements: np.ndarray, sines: np.ndarray, window: Any) -> None:
+    """The module doc's three tables for one rig: its background (with the focal return as pairs), elements, sines
+    and time window; the walks are the rig's own tables' (`diffuse.focal_walks`), weighted as `paths.focal_pairs`
+    weights them (E of F3 at the band's centre times D = W′/2 of the ends moved onto the axis)."""
     single = bg.single
     assert single is not None and single._fr_light is not None
     layer, c0 = single.layer, single.c0
