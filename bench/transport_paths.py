@@ -272,6 +272,7 @@ def headline(quick: bool, n_real: int, n_walks: int, layer_kw: dict[str, Any], r
     split["paths synthesised + beads"] = synthesised + parts["speckle"]
     split.update({"model, Gaussian field": parts["model"], "model, beads' grid": parts["model first"]})
     cbs_check(sc, {**fogs_of(parts, models), **split})
+    cbs_by_band(sc, {"paths synthesised, orders ≥ 2": synthesised, "paths, orders ≥ 2": parts["paths"]})
     # The fogs' time envelopes (a changed model's beads are drawn on its own grid: only its whole fog compares)
     t, e_p = bm.time_envelope(parts["paths"] + parts["speckle"], freqs, sc.pulse)
     env = {n: bm.time_envelope(parts[n] + parts[n + " first"], freqs, sc.pulse)[1] for n in models}
@@ -344,6 +345,12 @@ def fogs_of(parts: dict[str, np.ndarray], models: dict[str, Any]) -> dict[str, n
     return out
 
 
+def cbs_q_out(sc: Any) -> float:
+    """|b + a| beyond which the CBS profile is the ladder (`validate_background.cbs_q_out` for a scenario's array):
+    outside the cone and the aperture's λ/D, at least 0.2."""
+    return max(0.2, 2 * sc.c0 / sc.pulse.centre / float(np.sqrt(np.prod(sc.probe.aperture))))
+
+
 #: The CBS's gates, µs after the surface echo (`validate_background.cbs_by_age`'s).
 CBS_AGES = ((5.0, 10.0), (10.0, 20.0), (20.0, 30.0), (5.0, np.inf))
 
@@ -357,8 +364,7 @@ def cbs_check(sc: Any, fogs: dict[str, np.ndarray]) -> None:
     el, sines, freqs = sc.probe.positions, sc.sequence.sines, sc.freqs
     t_on = 2 * layer.z_surface / sc.c0
     t_end = sc.window.t0 + sc.window.duration
-    aperture = float(np.sqrt(np.prod(sc.probe.aperture)))
-    q_out = max(0.2, 2 * sc.c0 / sc.pulse.centre / aperture)  # outside the cone and the aperture's λ/D
+    q_out = cbs_q_out(sc)
     print(f"  CBS over the ladder by age after the surface echo (|b + a| > {q_out:.2f} the ladder), ± jackknife:")
     print(" " * 35 + " | ".join(f"{a:.0f}–{b:.0f} µs" for a, b in CBS_AGES) + "   (symmetry over the last gate)")
     for name, v in fogs.items():
@@ -368,6 +374,27 @@ def cbs_check(sc: Any, fogs: dict[str, np.ndarray]) -> None:
             c = bm.cbs_enhancement(v, freqs, el, sines, sc.c0, 3, gate=gate, q_out=q_out)
             row.append(f"{c['enhancement_ladder']:.2f} ± {c['enhancement_ladder_se']:.2f}")
         print(f"    {name:30s} " + " | ".join(row) + f"   symmetry {c['reciprocity']:.3f}")
+
+
+#: Thirds of the band for `cbs_by_band` (Hz): the quick array's grating lobes propagate in the top one.
+CBS_BANDS = ((1.4e6, 1.8e6), (1.8e6, 2.4e6), (2.4e6, 3.0e6))
+
+
+def cbs_by_band(sc: Any, fogs: dict[str, np.ndarray], age: tuple[float, float] = (10.0, 20.0)) -> None:
+    """The CBS over the ladder at one age, in thirds of the band, for each of `fogs`: an array of pitch p has
+    grating lobes only where λ < p(1 + |s|) (the quick rig's 0.68 mm: above 1.84 MHz for its most steered transmit,
+    and propagating at less than grazing from about 2.4 MHz), so a retro peak made by them shows in the top third."""
+    el, sines, freqs = sc.probe.positions, sc.sequence.sines, sc.freqs
+    t_on = 2 * sc.layer.z_surface / sc.c0
+    gate = (t_on + age[0] * 1e-6, t_on + age[1] * 1e-6)
+    print(f"  CBS over the ladder at {age[0]:.0f}–{age[1]:.0f} µs by band, and the plane-wave symmetry:")
+    for name, v in fogs.items():
+        row = []
+        for lo, hi in CBS_BANDS:
+            m = (freqs >= lo) & (freqs < hi)
+            c = bm.cbs_enhancement(v[:, m], freqs[m], el, sines, sc.c0, 3, gate=gate, q_out=cbs_q_out(sc))
+            row.append(f"{lo / 1e6:.1f}–{hi / 1e6:.1f} MHz {c['enhancement_ladder']:.2f} ({c['reciprocity']:.2f})")
+        print(f"    {name:30s} " + " | ".join(row))
 
 
 def db(x: np.ndarray) -> np.ndarray:
