@@ -315,6 +315,12 @@ def cbs_enhancement(
     }
 
 
+def cbs_ladder_bound(wavelength: float, aperture: float) -> float:
+    """|b + a| beyond which `cbs_enhancement`'s profile is the ladder (its q_out): outside the cone and twice the
+    aperture's angular resolution λ/D, at least 0.2."""
+    return max(0.2, 2 * wavelength / aperture)
+
+
 def _cone(p: np.ndarray, q: np.ndarray, ret: np.ndarray, q_out: float, bw: float) -> dict[str, Any]:
     """`cbs_enhancement`'s cone from P(b, a) (N_b, N_θ) summed over realisations and frequencies: the envelope
     E_out(b) E_in(a) divided out, the profile in bins of |b + a|, its value at b = −a over the mean outside the

@@ -34,15 +34,14 @@ AGES = ((5.0, 10.0), (10.0, 20.0), (20.0, 30.0), (5.0, np.inf))
 FOCAL = {"focal_return": True, "focal_return_pairs": True, "focal_return_shallow": True}
 
 
-def gates(s: flr.Setup) -> list[tuple[float, float]]:
-    """The AGES that start inside the record, as absolute times (s), each ending at the record's end at the latest."""
-    t_on = 2 * s.z_surface / s.c0
-    return [(t_on + a * 1e-6, min(t_on + b * 1e-6, s.t_end)) for a, b in AGES if t_on + a * 1e-6 < s.t_end]
+def ages_in(s: flr.Setup) -> list[tuple[float, float]]:
+    """The AGES that start inside the record."""
+    return [(a, b) for a, b in AGES if 2 * s.z_surface / s.c0 + a * 1e-6 < s.t_end]
 
 
 def energy(v: np.ndarray, s: flr.Setup, freqs: np.ndarray) -> np.ndarray:
-    """Mean |V|² in each gate."""
-    return np.array([float(np.mean(np.abs(bm.gate_spectra(v, freqs, g)) ** 2)) for g in gates(s)])
+    """Mean |V|² in each gate (`validate_background.age_gates`)."""
+    return np.array([float(np.mean(np.abs(bm.gate_spectra(v, freqs, g)) ** 2)) for g in vb.age_gates(s, ages_in(s))])
 
 
 def main() -> int:
@@ -82,7 +81,7 @@ def main() -> int:
         # the same seeds draw the same beads with and without the focal return: their share of the default's whole
         "model, the beads alone (no focal return)": energy(beads, s, freqs) / energy(whole, s, freqs),
     }
-    ages = [(a, b) for a, b in AGES if 2 * s.z_surface / s.c0 + a * 1e-6 < s.t_end]
+    ages = ages_in(s)
     head = " | ".join(f"{a:g}–{b:g} µs" for a, b in ages)
     print(f"{s.dim}-D rig ({path.name}): CBS over the ladder ± jackknife by age after the surface echo: {head}")
     for name, v in parts.items():

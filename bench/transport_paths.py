@@ -180,7 +180,6 @@ def headline(quick: bool, n_real: int, n_walks: int, layer_kw: dict[str, Any], r
     l_max = sc.c0 * t_end - 2 * layer.z_surface
     reach = 0.5 * aperture + 20e-3 * float(np.max(np.abs(sines) / np.sqrt(1 - (sines**2).sum(1))[:, None])) + 5e-3
     lext_c = float(layer.l_ext_at(2.2e6))
-    pitch = float(np.min(np.diff(np.unique(np.round(el[:, 0], 9)))))
     t0 = time.perf_counter()
 
     def path_set(tag: str, transmits: PlaneWaveBeams | Synthesised) -> np.ndarray:
@@ -224,7 +223,7 @@ def headline(quick: bool, n_real: int, n_walks: int, layer_kw: dict[str, Any], r
     # The same walks with the transmits synthesised by the elements as the probe fires them: reciprocal as the array
     # measures it, the CBS's reference (the beams above are the simulator's own model of a transmit, not the receive's
     # functions, so their retro-reflected element is no diagonal one: their plane-wave symmetry is 0.77–0.83).
-    synthesised = path_set("_synthesised", Synthesised(sines, pitch))
+    synthesised = path_set("_synthesised", Synthesised(sines, sc.probe.pitch))
     models = {"model": sc}
     if layer_kw:
         models["model+"] = sim.scenario("sinking-sphere", quick=quick, n_frames=1, **layer_kw)
@@ -346,9 +345,8 @@ def fogs_of(parts: dict[str, np.ndarray], models: dict[str, Any]) -> dict[str, n
 
 
 def cbs_q_out(sc: Any) -> float:
-    """|b + a| beyond which the CBS profile is the ladder (`validate_background.cbs_q_out` for a scenario's array):
-    outside the cone and the aperture's λ/D, at least 0.2."""
-    return max(0.2, 2 * sc.c0 / sc.pulse.centre / float(np.sqrt(np.prod(sc.probe.aperture))))
+    """The CBS's ladder bound for a scenario's array (`background_metrics.cbs_ladder_bound`)."""
+    return bm.cbs_ladder_bound(sc.c0 / sc.pulse.centre, float(np.sqrt(np.prod(sc.probe.aperture))))
 
 
 #: The CBS's gates, µs after the surface echo (`validate_background.cbs_by_age`'s).

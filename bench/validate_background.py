@@ -220,21 +220,26 @@ def measure(
 
 
 def cbs_q_out(s: flr.Setup) -> float:
-    """|b + a| beyond which the CBS profile is the ladder: outside the cone and the aperture's λ/D, at least 0.2."""
-    return max(0.2, 2 * s.c0 / s.f_c / (s.n_side * s.pitch))
+    """The CBS's ladder bound for the rig's array (`background_metrics.cbs_ladder_bound`)."""
+    return bm.cbs_ladder_bound(s.c0 / s.f_c, s.n_side * s.pitch)
+
+
+def age_gates(s: flr.Setup, ages: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """Each gate (a, b) µs after the surface echo as absolute times (s), ending at the record's end at the latest
+    (b may be inf)."""
+    t_on = 2 * s.z_surface / s.c0
+    return [(t_on + a * 1e-6, min(t_on + b * 1e-6, s.t_end)) for a, b in ages]
 
 
 def cbs_by_age(
     v: np.ndarray, s: flr.Setup, sines: np.ndarray, freqs: np.ndarray, ages: list[tuple[float, float]]
 ) -> dict[tuple[float, float], tuple[float, float]]:
     """The CBS enhancement over the ladder and its jackknife standard error in each gate (a, b) µs after the surface
-    echo (b may be inf: to the record's end)."""
-    t_on = 2 * s.z_surface / s.c0
+    echo (`age_gates`)."""
     out = {}
-    for a, b in ages:
-        gate = (t_on + a * 1e-6, min(t_on + b * 1e-6, s.t_end))
+    for age, gate in zip(ages, age_gates(s, ages), strict=True):
         c = bm.cbs_enhancement(v, freqs, s.elements(), sines, s.c0, s.dim, gate=gate, q_out=cbs_q_out(s))
-        out[(a, b)] = (float(c["enhancement_ladder"]), float(c["enhancement_ladder_se"]))
+        out[age] = (float(c["enhancement_ladder"]), float(c["enhancement_ladder_se"]))
     return out
 
 
