@@ -18,10 +18,12 @@ gives G = 1.1 there and 1.8–2.0 over a 27 mm-wide slab, whose edges lie beyond
 Printed:
 
 1. S4's own setting: each sphere's calibration (in water, the fingerprint's own echo) in stationary, band-limited
-   white noise, with the default fingerprint (gated after the front face, whitened at 0.4 σ_1) and ungated, next to
-   N_S·N_T and the share of the echo's energy the gate keeps (three noise draws: mean ± std).
-2. In the scenario's fog at 2, 3, 4 ℓ_s and the paper's depth (frame 0): G on the fog itself, on white noise given
-   the fog's own RMS time envelope (what the fog's decay alone gives), and, at the paper's depth, ungated.
+   white noise, with the default fingerprint (gated after the front face, whitened at 0.4 σ_1), the gated matrix
+   itself (R0′, paper S2 Fig. S7a: `whiten_modes=False`) and ungated, next to N_S·N_T and the share of the echo's
+   energy the gate keeps (three noise draws: mean ± std).
+2. In the scenario's fog at 2, 3, 4 ℓ_s and the paper's depth (frame 0): G on the fog itself with the default and
+   with R0′, on white noise given the fog's own RMS time envelope (what the fog's decay alone gives), and, at the
+   paper's depth, ungated.
 3. The paper's figures read through S4: ρ = G·C_I, and the amplitude contrast C_γ = γ_t/mean γ that its Fig. 2 quotes
    (docs/design.md §4.8) would be about κ√(1 + ρ), κ = rms/mean of the background's γ (1.13 for Rayleigh).
 """
@@ -50,6 +52,15 @@ from fpcore.fingerprint import time_gate  # noqa: E402
 #: hold no target, so nothing is excluded.
 SLAB = 0.5e-3
 PATCH = 3e-3
+
+#: The fingerprints compared (`fpcore.from_calibration` options): the default, gated and whitened (paper eq. finger);
+#: the gated matrix itself, R0′ (paper S2, Fig. S7a); ungated.
+DEFAULT = "gated, whitened (default)"
+FINGERPRINTS: dict[str, dict] = {
+    DEFAULT: {},
+    "gated, R0′ (not whitened)": {"whiten_modes": False},
+    "ungated, whitened": {"gate": False},
+}
 
 
 def white_noise_like(acq: fpcore.Acquisition, support: tuple[float, float], envelope=None, seed: int = 1):
@@ -127,9 +138,9 @@ def in_water(sc: sim.Scenario, seeds=(1, 2, 3)) -> list[dict]:
         t = cal.ground_truth
         imager = fpcore.Imager(fpcore.ImagingConfig(fpcore.Grid.for_acquisition(cal, sc.band), band=sc.band))
         share = gated_share(cal, t.r0, t.diameter, sc.band)
-        for label, gate in (("gated (default)", True), ("ungated", False)):
+        for label, fp_kw in FINGERPRINTS.items():
             fp = fpcore.from_calibration(
-                cal, t.r0, imager.out_sines_for(cal), sc.band, None, diameter=t.diameter, name=name, gate=gate
+                cal, t.r0, imager.out_sines_for(cal), sc.band, None, diameter=t.diameter, name=name, **fp_kw
             )
             split = SplitGain(imager, fp, cal, t.r0, 0.5 * t.diameter)
             m = [split.against(white_noise_like(cal, sc.pulse.support, seed=s)) for s in seeds]
@@ -146,7 +157,7 @@ def in_water(sc: sim.Scenario, seeds=(1, 2, 3)) -> list[dict]:
             }
             rows.append(row)
             print(
-                f"  {name} {label:16s} G = {row['G']:5.2f} ± {row['G_std']:.2f} (slab {row['G_slab']:4.2f})   "
+                f"  {name} {label:26s} G = {row['G']:5.2f} ± {row['G_std']:.2f} (slab {row['G_slab']:4.2f})   "
                 f"N_S N_T = {fp.n_s * fp.n_t:5.0f} "
                 f"(N_S {fp.n_s:4.1f}, N_T {fp.n_t:4.1f})   share of the echo's energy after the gate {share:.2f}"
             )
@@ -175,21 +186,21 @@ def in_fog(quick: bool, depths: tuple[float | None, ...], frame: int = 0) -> lis
             t = cal.ground_truth
             echo = sc.target_echo(tg.name, frame)
             z_ls = float((tg.position[2] - lay.z_surface) / lay.ls)
-            gates = (True, False) if depth is None else (True,)
-            for gate in gates:
+            variants = dict(FINGERPRINTS) if depth is None else {k: FINGERPRINTS[k] for k in list(FINGERPRINTS)[:2]}
+            for kind, fp_kw in variants.items():
                 fp = fpcore.from_calibration(
-                    cal, t.r0, imager.out_sines_for(fog), sc.band, None, diameter=t.diameter, name=tg.name, gate=gate
+                    cal, t.r0, imager.out_sines_for(fog), sc.band, None, diameter=t.diameter, name=tg.name, **fp_kw
                 )
                 split = SplitGain(imager, fp, echo, tg.position, 0.5 * tg.diameter)
                 for label, bg in backgrounds.items():
-                    if not gate and label != "fog":
+                    if kind != DEFAULT and label != "fog":
                         continue
                     m = split.against(bg)
-                    row = {"target": tg.name, "depth_ls": z_ls, "background": label, "gate": gate, **m}
+                    row = {"target": tg.name, "depth_ls": z_ls, "background": label, "fingerprint": kind, **m}
                     row["N_S_N_T"] = fp.n_s * (fp.n_t or 0.0)
                     rows.append(row)
                     print(
-                        f"  {tg.name} at {z_ls:3.1f} ℓ_s, {'gated' if gate else 'ungated':7s} {label:26s} "
+                        f"  {tg.name} at {z_ls:3.1f} ℓ_s, {kind:24s} {label:26s} "
                         f"C_I = 1/{1 / m['C_I']:7.1f}  ρ = F_T/F_M = {m['rho']:8.3f}  "
                         f"G = {m['G']:6.1f} (slab {m['G_slab']:6.1f})  "
                         f"(N_S N_T {row['N_S_N_T']:4.0f}; κ {m['kappa']:.2f})"
@@ -219,9 +230,16 @@ def plot(rows: dict[str, list[dict]], png: Path) -> None:
     for ax, name in zip(axes, ("sphere1", "sphere2"), strict=True):
         n_s_n_t = None
         for size, marker in (("quick", "o"), ("full", "s")):
-            fog = [r for r in rows.get(f"fog_{size}", []) if r["target"] == name and r["gate"]]
-            for label, colour in (("fog", "C3"), ("white, the fog's envelope", "C0")):
-                pts = sorted((r["depth_ls"], r["G"]) for r in fog if r["background"] == label)
+            fog = [r for r in rows.get(f"fog_{size}", []) if r["target"] == name]
+            curves = (
+                ("fog", DEFAULT, "C3", "fog"),
+                ("white, the fog's envelope", DEFAULT, "C0", "white, the fog's envelope"),
+                ("fog", "gated, R0′ (not whitened)", "C4", "fog, F = R0′ (not whitened)"),
+            )
+            for background, kind, colour, label in curves:
+                pts = sorted(
+                    (r["depth_ls"], r["G"]) for r in fog if r["background"] == background and r["fingerprint"] == kind
+                )
                 if pts:
                     x, y = zip(*pts, strict=True)
                     ax.plot(
@@ -249,7 +267,7 @@ def plot(rows: dict[str, list[dict]], png: Path) -> None:
         ax.axhline(PAPER[name]["G"], color="C1", lw=1, label="the paper's G (640 / 380)")
         ax.set_yscale("log")
         ax.set_xlabel("centre depth (ℓ_s)")
-        ax.set_title(f"{name}: G = (F_T/F_M)/C_I, gated fingerprint")
+        ax.set_title(f"{name}: G = (F_T/F_M)/C_I")
         ax.grid(alpha=0.3, which="both")
     axes[0].set_ylabel("G")
     handles, labels = axes[0].get_legend_handles_labels()

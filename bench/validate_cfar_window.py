@@ -3,6 +3,7 @@
     python bench/validate_cfar_window.py --dim 3 --single-scattering field --media 100 --seed0 8000
     python bench/validate_cfar_window.py --dim 2 --media 300                      # the default fog
     python bench/validate_cfar_window.py --dim 3 --targets --media 16 --depth-ls 2   # detection power
+    python bench/validate_cfar_window.py --dim 3 --media 30 --unwhitened     # fingerprints F = R0′ (paper S2)
 
 One frame per simulated medium (frames of one medium are correlated), the quick rig, the default grid (the
 record's whole time window) and the physical null level P·A of eq. (B1), exactly what `fpcore.locate` uses;
@@ -56,6 +57,9 @@ def main() -> None:
     ap.add_argument("--targets", action="store_true", help="keep the targets: detection power instead of the null")
     ap.add_argument("--depth-ls", type=float, help="targets' depth in ℓ_s (scenario option)")
     ap.add_argument("--conventions", choices=("paper", "legacy"), help="scenario conventions (default: paper)")
+    ap.add_argument(
+        "--unwhitened", action="store_true", help="fingerprints F = R0′, the gated calibration (whiten_modes=False)"
+    )
     args = ap.parse_args()
     if args.media < 1:
         ap.error("--media: expected >= 1")
@@ -79,7 +83,7 @@ def main() -> None:
                 grid = Grid.for_acquisition(first, sc.band)
                 imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
                 level = fpcore.NullLevel(imager)
-                fps = sc.fingerprints(imager.out_sines_for(first))
+                fps = sc.fingerprints(imager.out_sines_for(first), whiten_modes=not args.unwhitened)
             assert imager is not None and level is not None and fps is not None
             if not args.targets:
                 sc = sc.without_targets()
@@ -103,7 +107,8 @@ def main() -> None:
                     elif p < 0.05:
                         depths[cname].append(round(float(pos[2]) * 1e3, 1))
             progress.advance(task)
-    print(f"\n{name}, {args.media} media from seed {args.seed0}, {opts or 'scenario defaults'}:")
+    kind = "F = R0′ (not whitened)" if args.unwhitened else "whitened fingerprints"
+    print(f"\n{name}, {args.media} media from seed {args.seed0}, {opts or 'scenario defaults'}, {kind}:")
     for cname in CFAR_NAMES:
         p = np.asarray(pfas[cname])
         if args.targets:

@@ -302,13 +302,16 @@ def from_calibration(
     angular_filter: bool = True,
     name: str = "target",
     gate: bool = True,
+    whiten_modes: bool = True,
 ) -> Fingerprint:
     """Fingerprint from a calibration acquisition of the target alone at r0 (paper, Methods).
 
     band/n_freq/out_sines must be those the processor uses on the frames (checked at use).
     gate_dt defaults to 1/Δf (paper: δt ∼ 1/Δf). diameter None: measured from the calibration itself
     (`first_arrival_diameter`), so the gate sits after the echo's first arrival rather than at r0;
-    gate=False keeps the whole record. Returns F_θθ(r0, f) with N_S and N_T filled in.
+    gate=False keeps the whole record. whiten_modes=False keeps the time-filtered matrix itself, F = R0′
+    (paper S2, Fig. S7a: every mode at its own singular value) instead of its whitened modes (eq. finger);
+    N_S is counted at `svd_threshold` either way. Returns F_θθ(r0, f) with N_S and N_T filled in.
     """
     r0 = np.asarray(r0, dtype=float)
     if r0.shape != (3,):
@@ -320,7 +323,7 @@ def from_calibration(
     gated = time_gate(acq, r0, diameter, dt) if gate else acq
     spec = gated.spectrum(f_min, f_max, n_freq)
     white, n_s_f, rel = whiten(spec, svd_threshold)
-    pw = to_plane_waves(white, out_sines)
+    pw = to_plane_waves(white if whiten_modes else spec, out_sines)
     data = pw.data
     if angular_filter:
         a_out = angular_mask(pw.out_sines, r0, acq.probe, margin=diameter / 2)
@@ -341,6 +344,7 @@ def from_calibration(
             "svd_threshold": svd_threshold,
             "gate_dt_s": dt,
             "gate": "front" if gate else "none",
+            "modes": "whitened" if whiten_modes else "R0' (not whitened)",
         },
         n_s=float(np.mean(n_s_f)),
         singular_values=rel.astype(np.float32),

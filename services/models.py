@@ -166,6 +166,7 @@ def build_fingerprint(
             svd_threshold=svd_threshold,
             name=spec.name,
             gate=spec.gate,
+            whiten_modes=spec.whiten_modes,
         )
     r0 = np.asarray(spec.r0, float) if spec.r0 is not None else imager.grid.centre_index_point()
     if r0.shape == (2,):

@@ -90,6 +90,7 @@ class FingerprintSpec:
     r0: tuple[float, float, float] | None = None
     diameter: float | None = None  # None: from the calibration's truth, else measured (first arrival)
     gate: bool = True  # the paper's time gate after the front face; False keeps the whole record
+    whiten_modes: bool = True  # the paper's whitened modes (eq. finger); False keeps R0′ itself (S2, Fig. S7a)
     # a velocity dictionary searched around each detection and track (fpcore.velocity; None: off)
     velocity_grid: VelocityGrid | None = None
 

@@ -106,3 +106,12 @@ def test_gate_none_and_measured_diameter(sim, tmp_path, capsys) -> None:
     assert main(["locate", data, "--calibration", cal, "--gate", "none", "--frames", "0", "--json", str(out)]) == 0
     assert "no gate" in capsys.readouterr().out
     assert isinstance(json.loads(out.read_text())["frames"][0]["detections"], list)
+
+
+def test_no_whitening_keeps_the_gated_calibration(sim, tmp_path, capsys) -> None:
+    """--no-whitening: F = R0′ (paper S2, Fig. S7a); said on screen, and the run still locates."""
+    data, cal = str(sim / "frames.uff"), str(sim / "calibration_cylinder1.uff")
+    out = tmp_path / "w.json"
+    assert main(["locate", data, "--calibration", cal, "--no-whitening", "--frames", "0", "--json", str(out)]) == 0
+    assert "F = R0′ (not whitened)" in capsys.readouterr().out
+    assert isinstance(json.loads(out.read_text())["frames"][0]["detections"], list)

@@ -56,6 +56,28 @@ def test_calibration_fingerprint_finds_r0_and_follows_a_shift(linear_setup, imag
     assert np.linalg.norm(peak2 - (r0 + shift)) <= step * 1.5
 
 
+def test_unwhitened_fingerprint_is_the_gated_calibration(linear_setup, imager_2d: Imager) -> None:
+    """whiten_modes=False keeps F = R0′ (paper S2, Fig. S7a): the gated calibration matches it exactly at r0
+    (γ = 1, Cauchy–Schwarz's equality), where its whitened modes match it less; N_S is counted alike."""
+    from fpcore.fingerprint import time_gate
+
+    probe, seq = linear_setup
+    r0 = np.array([0.0, 0.0, 15e-3])
+    pts, amps = _cluster(r0, 1.5e-3)
+    cal = born_points(probe, seq, pts, amps)
+    out = imager_2d.out_sines_for(cal)
+    kw = dict(diameter=3e-3, angular_filter=False)
+    raw = from_calibration(cal, r0, out, BAND, 32, whiten_modes=False, **kw)
+    white = from_calibration(cal, r0, out, BAND, 32, **kw)
+    assert raw.n_s == white.n_s and raw.state["modes"] != white.state["modes"]
+    gated = imager_2d.plane_waves(time_gate(cal, r0, 3e-3, 1.0 / (BAND[1] - BAND[0])))
+    node = imager_2d.grid.nearest_index(r0)
+    assert np.allclose(imager_2d.grid.position(node), r0)
+    g_raw, g_white = imager_2d.gamma(gated, raw)[node], imager_2d.gamma(gated, white)[node]
+    assert g_raw == pytest.approx(1.0, abs=1e-4)
+    assert g_white < 0.99 * g_raw
+
+
 def test_calibration_3d_finds_r0(matrix_setup) -> None:
     probe, seq = matrix_setup
     r0 = np.array([0.3e-3, -0.2e-3, 8e-3])

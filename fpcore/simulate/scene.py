@@ -315,10 +315,10 @@ class Scenario:
             yield self.frame(i)
 
     def fingerprints(
-        self, out_sines: np.ndarray, n_freq: int | None = None, svd_threshold: float = 0.4
+        self, out_sines: np.ndarray, n_freq: int | None = None, svd_threshold: float = 0.4, whiten_modes: bool = True
     ) -> dict[str, Fingerprint]:
         """Each target's calibration fingerprint (fpcore.from_calibration, paper Methods) on this band,
-        gated at its front face (r0 and diameter from the calibration's truth)."""
+        gated at its front face (r0 and diameter from the calibration's truth); whiten_modes=False keeps R0′."""
         out = {}
         for name in self.target_names:
             truth = self.calibration_truth(name)
@@ -331,6 +331,7 @@ class Scenario:
                 diameter=truth.diameter,
                 svd_threshold=svd_threshold,
                 name=name,
+                whiten_modes=whiten_modes,
             )
         return out
 

@@ -32,7 +32,7 @@ __all__ = [
 
 
 def add_fingerprint_arguments(p: argparse.ArgumentParser) -> None:
-    """--calibration | --model, --r0, --force, --diameter, --gate, --max-pfa, --dataset."""
+    """--calibration | --model, --r0, --force, --diameter, --gate, --no-whitening, --max-pfa, --dataset."""
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--calibration", help="UFF file: the target alone in water at r0 (fingerprint source)")
     src.add_argument("--model", help="numerical fingerprint: 'point' or 'mirror:L=2mm,alpha=10' (alpha in degrees)")
@@ -56,6 +56,12 @@ def add_fingerprint_arguments(p: argparse.ArgumentParser) -> None:
         choices=("front", "none"),
         default="front",
         help="calibration time gate: 'front' (paper: after the front face's echo) or 'none'",
+    )
+    p.add_argument(
+        "--no-whitening",
+        action="store_true",
+        help="fingerprint F = R0′, the gated calibration itself (paper S2, Fig. S7a), instead of its whitened "
+        "singular modes (eq. finger); in the simulated fog it gains 2–9× in F_T/F_M at 3–5 ℓ_s (bench/gain_law.py)",
     )
     p.add_argument(
         "--max-pfa",
@@ -128,7 +134,15 @@ def fingerprint_spec(
     check_calibration(cal, first)
     r0, diameter = calibration_r0(args, cal)
     name = calibration_name(args.calibration, cal)
-    return FingerprintSpec(name, calibration=cal, r0=tuple(r0), diameter=diameter, gate=args.gate == "front"), cal
+    spec = FingerprintSpec(
+        name,
+        calibration=cal,
+        r0=tuple(r0),
+        diameter=diameter,
+        gate=args.gate == "front",
+        whiten_modes=not args.no_whitening,
+    )
+    return spec, cal
 
 
 def warn_r0(

@@ -111,9 +111,10 @@ def run_locate(args: argparse.Namespace) -> int:
             else f"gate after the front face, d = {fp.state['diameter_m'] * 1e3:.1f} mm"
             + (" (measured: first arrival)" if spec.diameter is None else "")
         )
+        modes = "F = R0′ (not whitened)" if args.no_whitening else "whitened modes"
         console.print(
-            f"fingerprint from {args.calibration}: r0 = {np.round(fp.r0 * 1e3, 2)} mm, {how}, "
-            f"N_S = {fp.n_s:.1f}, N_T = {fp.n_t:.1f}, G ≈ {fp.n_s * fp.n_t:.0f}"
+            f"fingerprint from {args.calibration}: r0 = {np.round(fp.r0 * 1e3, 2)} mm, {how}, {modes}, "
+            f"N_S = {fp.n_s:.1f}, N_T = {fp.n_t:.1f}, N_S·N_T = {fp.n_s * fp.n_t:.0f} (eq. G's count)"
         )
     if args.velocity is not None:
         fp = _moving(fp, args.velocity, first)
