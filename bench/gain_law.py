@@ -251,9 +251,7 @@ def plot(rows: dict[str, list[dict]], png: Path) -> None:
                         label=f"{label} ({size})",
                     )
                     n_s_n_t = next(r["N_S_N_T"] for r in fog)
-            water = [
-                r for r in rows.get(f"water_{size}", []) if r["target"] == name and r["fingerprint"].startswith("gated")
-            ]
+            water = [r for r in rows.get(f"water_{size}", []) if r["target"] == name and r["fingerprint"] == DEFAULT]
             for r in water:
                 ax.axhline(
                     r["G"],
