@@ -317,14 +317,19 @@ def reverberation_n_t(cal: fpcore.Acquisition, band: tuple[float, float]) -> flo
 
 
 def headline(
-    quick: bool, frames: list[int], configs: dict[str, dict] | None = None, scenario: str = "sinking-sphere"
+    quick: bool,
+    frames: list[int],
+    configs: dict[str, dict] | None = None,
+    scenario: str = "sinking-sphere",
+    whiten_modes: bool = True,
 ) -> list[dict]:
     """The paper's figures, measured (issue: the paper's regime). Per configuration, target and frame: C_I (the
     target's own echo — simulated alone through the medium — at its brightest point over the fog's mean confocal
     intensity at that depth), C_γ at the truth with and without the angular filter, N_S, N_T (participation
     width and the paper's Δf·Δt_{−20 dB}), G = N_S·N_T, the measured gain C_γ/C_I, and the detector's most
     significant peak (fpcore.locate on the whole record: distance to the truth, calibrated PFA) against the
-    Cramér–Rao radius. `scenario`: the sinking spheres (3-D) or their 2-D analogue, the sinking cylinders."""
+    Cramér–Rao radius. `scenario`: the sinking spheres (3-D) or their 2-D analogue, the sinking cylinders;
+    whiten_modes=False: the fingerprints are R0′ itself (paper S2, Fig. S7a; `from_calibration`)."""
     configs = configs or {
         "paper (default)": {},
         "paper's stated positions": {"sink": sim.scenarios.PAPER_POSITIONS[0], "sphere2_depth": 7e-3},
@@ -350,10 +355,9 @@ def headline(
         for name in sc.target_names:
             cal = sc.calibration(name)
             t = cal.ground_truth
-            fps[name] = fpcore.from_calibration(cal, t.r0, out_sines, sc.band, None, diameter=t.diameter, name=name)
-            fps_raw[name] = fpcore.from_calibration(
-                cal, t.r0, out_sines, sc.band, None, diameter=t.diameter, name=name, angular_filter=False
-            )
+            kw_fp = {"diameter": t.diameter, "name": name, "whiten_modes": whiten_modes}
+            fps[name] = fpcore.from_calibration(cal, t.r0, out_sines, sc.band, None, **kw_fp)
+            fps_raw[name] = fpcore.from_calibration(cal, t.r0, out_sines, sc.band, None, angular_filter=False, **kw_fp)
             nt_paper[name] = reverberation_n_t(cal, sc.band)
         lay = sc.layer
         assert lay is not None
@@ -503,6 +507,9 @@ def main() -> None:
     )
     ap.add_argument("--headline-only", action="store_true", help="only the quick headline's paper row (frames 0, 31)")
     ap.add_argument(
+        "--no-whitening", action="store_true", help="with --headline-only: fingerprints F = R0′ (paper S2, Fig. S7a)"
+    )
+    ap.add_argument(
         "--scenario",
         default="sinking-sphere",
         choices=("sinking-sphere", "sinking-cylinder"),
@@ -510,14 +517,14 @@ def main() -> None:
     )
     args = ap.parse_args()
     t0 = time.perf_counter()
-    if args.layer or args.headline_only:
+    if args.layer or args.headline_only or args.no_whitening:
         from validate_background import parse_layer
 
         kw = parse_layer(args.layer)
-        label = "paper" + "".join(f", {k}={v}" for k, v in kw.items())
-        headline(True, [0, 31], {label: kw}, args.scenario)
+        label = "paper" + "".join(f", {k}={v}" for k, v in kw.items()) + (", F = R0′" if args.no_whitening else "")
+        headline(True, [0, 31], {label: kw}, args.scenario, whiten_modes=not args.no_whitening)
         if args.full:
-            headline(False, [0], {label: kw}, args.scenario)
+            headline(False, [0], {label: kw}, args.scenario, whiten_modes=not args.no_whitening)
         print(f"\n(total {time.perf_counter() - t0:.0f} s)")
         return
     faran_checks()

@@ -61,7 +61,7 @@ def add_fingerprint_arguments(p: argparse.ArgumentParser) -> None:
         "--no-whitening",
         action="store_true",
         help="fingerprint F = R0′, the gated calibration itself (paper S2, Fig. S7a), instead of its whitened "
-        "singular modes (eq. finger); in the simulated fog it gains 2–9× in F_T/F_M at 3–5 ℓ_s (bench/gain_law.py)",
+        "singular modes (eq. finger); in the simulated fog it gains 1.2–11× in F_T/F_M at 2–5 ℓ_s (bench/gain_law.py)",
     )
     p.add_argument(
         "--max-pfa",
