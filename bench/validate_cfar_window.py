@@ -4,6 +4,7 @@
     python bench/validate_cfar_window.py --dim 2 --media 300                      # the default fog
     python bench/validate_cfar_window.py --dim 3 --targets --media 16 --depth-ls 2   # detection power
     python bench/validate_cfar_window.py --dim 3 --media 30 --unwhitened     # fingerprints F = R0′ (paper S2)
+    python bench/validate_cfar_window.py --dim 3 --media 30 --fingerprint sphere2   # another target's fingerprint
 
 One frame per simulated medium (frames of one medium are correlated), the quick rig, the default grid (the
 record's whole time window) and the physical null level P·A of eq. (B1), exactly what `fpcore.locate` uses;
@@ -60,6 +61,7 @@ def main() -> None:
     ap.add_argument(
         "--unwhitened", action="store_true", help="fingerprints F = R0′, the gated calibration (whiten_modes=False)"
     )
+    ap.add_argument("--fingerprint", help="target-free media: map this target's fingerprint (default: the first)")
     args = ap.parse_args()
     if args.media < 1:
         ap.error("--media: expected >= 1")
@@ -84,6 +86,8 @@ def main() -> None:
                 imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
                 level = fpcore.NullLevel(imager)
                 fps = sc.fingerprints(imager.out_sines_for(first), whiten_modes=not args.unwhitened)
+                if args.fingerprint and args.fingerprint not in fps:
+                    ap.error(f"--fingerprint: expected one of {sorted(fps)}, got {args.fingerprint!r}")
             assert imager is not None and level is not None and fps is not None
             if not args.targets:
                 sc = sc.without_targets()
@@ -93,7 +97,7 @@ def main() -> None:
             lam, bw = acq.c0 / acq.probe.centre_frequency, sc.band[1] - sc.band[0]
             truth = {t.name: np.asarray(t.position) for t in (acq.ground_truth.targets if acq.ground_truth else [])}
             for tname, fp in fps.items():
-                if not args.targets and tname != next(iter(fps)):
+                if not args.targets and tname != (args.fingerprint or next(iter(fps))):
                     continue  # one map per target-free medium: independent maps
                 g = imager.gamma(pw, fp)
                 lev, vis = level.level(acq, pw, fp, res)
@@ -108,6 +112,8 @@ def main() -> None:
                         depths[cname].append(round(float(pos[2]) * 1e3, 1))
             progress.advance(task)
     kind = "F = R0′ (not whitened)" if args.unwhitened else "whitened fingerprints"
+    if args.fingerprint and not args.targets:
+        kind += f", {args.fingerprint}'s"
     print(f"\n{name}, {args.media} media from seed {args.seed0}, {opts or 'scenario defaults'}, {kind}:")
     for cname in CFAR_NAMES:
         p = np.asarray(pfas[cname])
