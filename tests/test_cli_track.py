@@ -115,3 +115,9 @@ def test_no_whitening_keeps_the_gated_calibration(sim, tmp_path, capsys) -> None
     assert main(["locate", data, "--calibration", cal, "--no-whitening", "--frames", "0", "--json", str(out)]) == 0
     assert "F = R0′ (not whitened)" in capsys.readouterr().out
     assert isinstance(json.loads(out.read_text())["frames"][0]["detections"], list)
+
+
+def test_no_whitening_needs_a_calibration(sim, capsys) -> None:
+    """A model has no modes to whiten: --no-whitening with --model is a clear error, not ignored."""
+    assert main(["locate", str(sim / "frames.uff"), "--model", "point", "--no-whitening", "--frames", "0"]) == 2
+    assert "--no-whitening: applies to a --calibration" in capsys.readouterr().err

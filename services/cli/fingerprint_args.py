@@ -61,7 +61,8 @@ def add_fingerprint_arguments(p: argparse.ArgumentParser) -> None:
         "--no-whitening",
         action="store_true",
         help="fingerprint F = R0′, the gated calibration itself (paper S2, Fig. S7a), instead of its whitened "
-        "singular modes (eq. finger); in the simulated fog it gains 1.2–11× in F_T/F_M at 2–5 ℓ_s (bench/gain_law.py)",
+        "singular modes (eq. finger): in the simulated fog 1.2–11× more F_T/F_M at 2–5 ℓ_s, but it matches a "
+        "scattering layer's surface more (README, 'The paper's gain law, measured')",
     )
     p.add_argument(
         "--max-pfa",
@@ -128,6 +129,8 @@ def fingerprint_spec(
     if not 0 < args.max_pfa <= 1:
         raise ValueError(f"--max-pfa: expected 0 < p <= 1, got {args.max_pfa}")
     if not args.calibration:
+        if args.no_whitening:
+            raise ValueError("--no-whitening: applies to a --calibration fingerprint (a model has no modes to whiten)")
         parse_model(args.model)  # a bad spec fails here, before any imaging
         return FingerprintSpec(args.model.partition(":")[0], model=args.model, r0=model_r0), None
     cal = read_uff(args.calibration, args.dataset)[0]
