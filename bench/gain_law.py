@@ -96,7 +96,9 @@ class SplitGain:
         r_grid = self.r[[0, 2]] if grid.ndim == 2 else self.r
         d2 = sum((m - c) ** 2 for m, c in zip(mesh, r_grid, strict=True))
         pw = imager.plane_waves(echo)
-        self.n_t = float(imager.gamma(pw, fp)[grid.nearest_index(self.r)]) * float(np.linalg.norm(pw.data))
+        # γ's numerator |Tr R F†| (paper eq. P) of the echo alone at the target: γ times ‖R‖
+        # γ's numerator |Tr R F†| (paper eq. P) of the echo alone at the target: γ times ‖R‖
+        self.num_t = float(imager.gamma(pw, fp)[grid.nearest_index(self.r)]) * float(np.linalg.norm(pw.data))
         conf = imager.confocal(pw)
         ib = np.unravel_index(np.argmax(np.where(d2 < (radius + 1.5e-3) ** 2, conf, 0.0)), conf.shape)
         self.i_t = float(conf[ib])  # the echo's brightest confocal point near the target (paper eq. (1))
@@ -108,14 +110,14 @@ class SplitGain:
         """C_I, ρ, G and κ against `background` next to the target (within PATCH laterally, SLAB in depth), and
         G over the whole depth slab of the grid ("G_slab")."""
         pw = self.imager.plane_waves(background)
-        n_m = self.imager.gamma(pw, self.fp).astype(np.float64) * float(np.linalg.norm(pw.data))
+        num_m = self.imager.gamma(pw, self.fp).astype(np.float64) * float(np.linalg.norm(pw.data))
         conf = self.imager.confocal(pw)
         out: dict[str, float] = {}
         for name, (where_gamma, where_confocal) in self.regions.items():
             c_i = self.i_t / float(conf[where_confocal].mean())
-            rho = self.n_t**2 / float(np.mean(n_m[where_gamma] ** 2))
+            rho = self.num_t**2 / float(np.mean(num_m[where_gamma] ** 2))
             if name == "patch":
-                kappa = float(np.sqrt(np.mean(n_m[where_gamma] ** 2)) / np.mean(n_m[where_gamma]))
+                kappa = float(np.sqrt(np.mean(num_m[where_gamma] ** 2)) / np.mean(num_m[where_gamma]))
                 out.update(C_I=c_i, rho=rho, G=rho / c_i, kappa=kappa)
             else:
                 out[f"G_{name}"] = rho / c_i
