@@ -41,7 +41,7 @@ import numpy as np
 from scipy.ndimage import uniform_filter1d
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from validate_simulate import PAPER, section  # noqa: E402
+from validate_simulate import PAPER, brightest_near, section  # noqa: E402
 
 import fpcore  # noqa: E402
 import fpcore.simulate as sim  # noqa: E402
@@ -94,13 +94,12 @@ class SplitGain:
         mesh = np.meshgrid(*grid.axes, indexing="ij")
         self.r = np.asarray(r, dtype=float)
         r_grid = self.r[[0, 2]] if grid.ndim == 2 else self.r
-        d2 = sum((m - c) ** 2 for m, c in zip(mesh, r_grid, strict=True))
         pw = imager.plane_waves(echo)
         # γ's numerator |Tr R F†| (paper eq. P) of the echo alone at the target: γ times ‖R‖
         # γ's numerator |Tr R F†| (paper eq. P) of the echo alone at the target: γ times ‖R‖
         self.num_t = float(imager.gamma(pw, fp)[grid.nearest_index(self.r)]) * float(np.linalg.norm(pw.data))
         conf = imager.confocal(pw)
-        ib = np.unravel_index(np.argmax(np.where(d2 < (radius + 1.5e-3) ** 2, conf, 0.0)), conf.shape)
+        ib = brightest_near(conf, mesh, r_grid, radius)
         self.i_t = float(conf[ib])  # the echo's brightest confocal point near the target (paper eq. (1))
         lateral = sum((m - c) ** 2 for m, c in zip(mesh[:-1], r_grid[:-1], strict=True)) < PATCH**2
         at_target, at_cap = np.abs(mesh[-1] - r_grid[-1]) < SLAB, np.abs(mesh[-1] - mesh[-1][ib]) < SLAB
@@ -182,7 +181,7 @@ def in_fog(quick: bool, depths: tuple[float | None, ...], frame: int = 0) -> lis
             "fog": fog,
             "white, the fog's envelope": white_noise_like(fog, sc.pulse.support, rms_envelope(fog)),
         }
-        truth = sc.frame(frame).ground_truth
+        truth = sc.ground_truth(frame)  # the targets' truth without making the frame
         for tg in truth.targets or []:
             cal = sc.calibration(tg.name)
             t = cal.ground_truth

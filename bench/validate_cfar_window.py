@@ -65,6 +65,8 @@ def main() -> None:
     args = ap.parse_args()
     if args.media < 1:
         ap.error("--media: expected >= 1")
+    if args.fingerprint and args.targets:
+        ap.error("--fingerprint: for target-free media (with --targets every target's own fingerprint is mapped)")
     name = "sinking-sphere" if args.dim == 3 else "sinking-cylinder"
     opts: dict[str, Any] = {}
     for key, value in (("single_scattering", args.single_scattering), ("depth_ls", args.depth_ls)):

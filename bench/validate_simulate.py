@@ -316,6 +316,13 @@ def reverberation_n_t(cal: fpcore.Acquisition, band: tuple[float, float]) -> flo
     return (band[1] - band[0]) * (above[-1] - int(np.argmax(env))) / cal.fs
 
 
+def brightest_near(conf: np.ndarray, mesh: list[np.ndarray], r_grid: np.ndarray, radius: float) -> tuple:
+    """Index of a target echo's brightest confocal point within 1.5 mm of its surface (centre `r_grid` on the grid's
+    axes, `radius`): the target's intensity in C_I (paper eq. (1))."""
+    near = sum((m - c) ** 2 for m, c in zip(mesh, r_grid, strict=True)) < (radius + 1.5e-3) ** 2
+    return np.unravel_index(np.argmax(np.where(near, conf, 0.0)), conf.shape)
+
+
 def headline(
     quick: bool,
     frames: list[int],
@@ -369,8 +376,7 @@ def headline(
                 r, a = np.asarray(tg.position, float), 0.5 * tg.diameter
                 r_grid = r[[0, 2]] if sc.dim == 2 else r  # on the grid's axes: (x, z) in 2-D
                 conf_t = imager_c.confocal(imager_c.plane_waves(sc.target_echo(tg.name, i)))
-                near = sum((m - c) ** 2 for m, c in zip(mesh, r_grid, strict=True)) < (a + 1.5e-3) ** 2
-                ib = np.unravel_index(np.argmax(np.where(near, conf_t, 0.0)), conf_t.shape)
+                ib = brightest_near(conf_t, mesh, r_grid, a)
                 c_i = float(conf_t[ib] / conf_fog[np.abs(mesh[-1] - grid_c.z[ib[-1]]) < 0.5e-3].mean())
                 loc = fpcore.locate(imager, acq, fps[tg.name], level, pw=pw, max_pfa=None)
                 det = loc.detections[0]
@@ -507,7 +513,7 @@ def main() -> None:
     )
     ap.add_argument("--headline-only", action="store_true", help="only the quick headline's paper row (frames 0, 31)")
     ap.add_argument(
-        "--no-whitening", action="store_true", help="with --headline-only: fingerprints F = R0′ (paper S2, Fig. S7a)"
+        "--no-whitening", action="store_true", help="the headline only, its fingerprints F = R0′ (paper S2, Fig. S7a)"
     )
     ap.add_argument(
         "--scenario",
