@@ -5,6 +5,7 @@
     python bench/validate_cfar_window.py --dim 3 --targets --media 16 --depth-ls 2   # detection power
     python bench/validate_cfar_window.py --dim 3 --media 30 --unwhitened     # fingerprints F = R0′ (paper S2)
     python bench/validate_cfar_window.py --dim 3 --media 30 --fingerprint sphere2   # another target's fingerprint
+    python bench/validate_cfar_window.py --dim 3 --media 30 --null-single-scattering   # the null level with eq. (B2)
 
 One frame per simulated medium (frames of one medium are correlated), the quick rig, the default grid (the
 record's whole time window) and the physical null level P·A of eq. (B1), exactly what `fpcore.locate` uses;
@@ -62,6 +63,11 @@ def main() -> None:
         "--unwhitened", action="store_true", help="fingerprints F = R0′, the gated calibration (whiten_modes=False)"
     )
     ap.add_argument("--fingerprint", help="target-free media: map this target's fingerprint (default: the first)")
+    ap.add_argument(
+        "--null-single-scattering",
+        action="store_true",
+        help="the null level mixes in the beads' single-scattering level (eq. B2, NullLevel(single_scattering=True))",
+    )
     args = ap.parse_args()
     if args.media < 1:
         ap.error("--media: expected >= 1")
@@ -86,7 +92,7 @@ def main() -> None:
                 first = sc.frame(0)
                 grid = Grid.for_acquisition(first, sc.band)
                 imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
-                level = fpcore.NullLevel(imager)
+                level = fpcore.NullLevel(imager, single_scattering=args.null_single_scattering)
                 fps = sc.fingerprints(imager.out_sines_for(first), whiten_modes=not args.unwhitened)
                 if args.fingerprint and args.fingerprint not in fps:
                     ap.error(f"--fingerprint: expected one of {sorted(fps)}, got {args.fingerprint!r}")
@@ -102,7 +108,7 @@ def main() -> None:
                 if not args.targets and tname != (args.fingerprint or next(iter(fps))):
                     continue  # one map per target-free medium: independent maps
                 g = imager.gamma(pw, fp)
-                lev, vis = level.level(acq, pw, fp, res)
+                lev, vis = level.level(acq, pw, fp, res, gamma=g)  # the map is used by eq. (B2) only
                 for cname, nm in models(g, grid, res, lev, vis).items():
                     # the detector's own most significant peak (fpcore.detect, as fpcore.locate runs it)
                     top = detect(g, grid, lam, acq.probe.aperture[0], bw, acq.c0, null=nm, max_pfa=None)[0]
@@ -116,6 +122,8 @@ def main() -> None:
     kind = "F = R0′ (not whitened)" if args.unwhitened else "whitened fingerprints"
     if args.fingerprint and not args.targets:
         kind += f", {args.fingerprint}'s"
+    if args.null_single_scattering:
+        kind += ", null level max(a P·A, b Q) (eq. B2)"
     print(f"\n{name}, {args.media} media from seed {args.seed0}, {opts or 'scenario defaults'}, {kind}:")
     for cname in CFAR_NAMES:
         p = np.asarray(pfas[cname])

@@ -6,6 +6,8 @@
                                     # the quick headline on a background option (docs/design.md §6.6), ~6 min
                                     # (any focal-return option replaces the default set: the pairs, F6)
     .venv/bin/python bench/validate_simulate.py --headline-only --scenario sinking-cylinder   # its 2-D analogue
+    .venv/bin/python bench/validate_simulate.py --headline-only --no-whitening --null-single-scattering \
+        --layer depth_ls=2.5 [--full]     # F = R0′ with the null level of eq. (B2) (docs/design.md §4.9)
 
 Sections:
  1. Faran coefficients: energy conservation, rigid limit, low-frequency (equivalent fluid) limit.
@@ -329,6 +331,7 @@ def headline(
     configs: dict[str, dict] | None = None,
     scenario: str = "sinking-sphere",
     whiten_modes: bool = True,
+    null_single_scattering: bool = False,
 ) -> list[dict]:
     """The paper's figures, measured (issue: the paper's regime). Per configuration, target and frame: C_I (the
     target's own echo — simulated alone through the medium — at its brightest point over the fog's mean confocal
@@ -336,7 +339,8 @@ def headline(
     width and the paper's Δf·Δt_{−20 dB}), G = N_S·N_T, the measured gain C_γ/C_I, and the detector's most
     significant peak (fpcore.locate on the whole record: distance to the truth, calibrated PFA) against the
     Cramér–Rao radius. `scenario`: the sinking spheres (3-D) or their 2-D analogue, the sinking cylinders;
-    whiten_modes=False: the fingerprints are R0′ itself (paper S2, Fig. S7a; `from_calibration`)."""
+    whiten_modes=False: the fingerprints are R0′ itself (paper S2, Fig. S7a; `from_calibration`);
+    null_single_scattering: the detector's null level with eq. (B2) (docs/design.md §4.9)."""
     configs = configs or {
         "paper (default)": {},
         "paper's stated positions": {"sink": sim.scenarios.PAPER_POSITIONS[0], "sphere2_depth": 7e-3},
@@ -355,7 +359,7 @@ def headline(
         grid_c = replace(sc.roi, z_range=(17e-3, sc.roi.z_range[1])).grid()  # confocal from 1 mm under z_s
         imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
         imager_c = fpcore.Imager(fpcore.ImagingConfig(grid_c, band=sc.band))
-        level = fpcore.NullLevel(imager)
+        level = fpcore.NullLevel(imager, single_scattering=null_single_scattering)
         mesh = np.meshgrid(*grid_c.axes, indexing="ij")
         fps, fps_raw, nt_paper = {}, {}, {}
         out_sines = imager.out_sines_for(first)
@@ -516,6 +520,11 @@ def main() -> None:
         "--no-whitening", action="store_true", help="the headline only, its fingerprints F = R0′ (paper S2, Fig. S7a)"
     )
     ap.add_argument(
+        "--null-single-scattering",
+        action="store_true",
+        help="the headline only, its null level with eq. (B2) (docs/design.md §4.9)",
+    )
+    ap.add_argument(
         "--scenario",
         default="sinking-sphere",
         choices=("sinking-sphere", "sinking-cylinder"),
@@ -523,14 +532,16 @@ def main() -> None:
     )
     args = ap.parse_args()
     t0 = time.perf_counter()
-    if args.layer or args.headline_only or args.no_whitening:
+    if args.layer or args.headline_only or args.no_whitening or args.null_single_scattering:
         from validate_background import parse_layer
 
         kw = parse_layer(args.layer)
         label = "paper" + "".join(f", {k}={v}" for k, v in kw.items()) + (", F = R0′" if args.no_whitening else "")
-        headline(True, [0, 31], {label: kw}, args.scenario, whiten_modes=not args.no_whitening)
+        label += ", null (B2)" if args.null_single_scattering else ""
+        opts = {"whiten_modes": not args.no_whitening, "null_single_scattering": args.null_single_scattering}
+        headline(True, [0, 31], {label: kw}, args.scenario, **opts)
         if args.full:
-            headline(False, [0], {label: kw}, args.scenario, whiten_modes=not args.no_whitening)
+            headline(False, [0], {label: kw}, args.scenario, **opts)
         print(f"\n(total {time.perf_counter() - t0:.0f} s)")
         return
     faran_checks()

@@ -9,6 +9,7 @@ against the truth over the mean confocal image (with zooms and the error per fra
     python bench/validate_tracking.py                                   # 3D quick, the whole record
     python bench/validate_tracking.py --scenario sinking-cylinder       # 2D analogue
     python bench/validate_tracking.py --roi                             # the scenario's ROI (z 20–31 mm)
+    python bench/validate_tracking.py --depth-ls 2.5 --no-whitening --null-single-scattering   # F = R0′, eq. (B2)
 
 The default grid is the product's: the record's whole time window, the suspension's surface (z_s = 16
 mm) included. γ rises under that surface, so the plain global argmax (printed beside) jumps there on
@@ -47,9 +48,12 @@ def run(
     integrate: int = 1,
     use_roi: bool = False,
     cfar: str = DEFAULT_CFAR,
+    whiten_modes: bool = True,
+    null_single_scattering: bool = False,
 ) -> dict[str, Any]:
     """Simulate, image, track over the scenario's region of interest (depths `z_range` if given);
-    returns per-target rows and the mean confocal image."""
+    returns per-target rows and the mean confocal image. whiten_modes=False: fingerprints F = R0′ (paper S2,
+    Fig. S7a); null_single_scattering: the null level with eq. (B2) (docs/design.md §4.9)."""
     sc = scenario(name, quick=quick, seed=0, **overrides)
     n = sc.n_frames if n_frames is None else min(n_frames, sc.n_frames)
     if use_roi or z_range is not None:
@@ -59,8 +63,8 @@ def run(
         grid = fpcore.Grid.for_acquisition(sc.frame(0), sc.band, spacing=spacing)  # the whole record
     z_range = (float(grid.z[0]), float(grid.z[-1]))
     imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
-    level = fpcore.NullLevel(imager, cfar=cfar)
-    fps = sc.fingerprints(imager.out_sines_for(sc.frame(0)))
+    level = fpcore.NullLevel(imager, cfar=cfar, single_scattering=null_single_scattering)
+    fps = sc.fingerprints(imager.out_sines_for(sc.frame(0)), whiten_modes=whiten_modes)
     lam = sc.c0 / sc.probe.centre_frequency
     bw = sc.band[1] - sc.band[0]
     aperture = sc.probe.aperture[0]
@@ -73,7 +77,9 @@ def run(
     print(
         f"{name} ({'quick' if quick else 'full'}), {n} frames, grid {grid.shape} "
         f"(z {z_range[0] * 1e3:.1f}–{z_range[1] * 1e3:.1f} mm), overrides {overrides or 'none'}, "
-        f"tracker integrates {integrate} frame(s), CFAR {cfar!r}"
+        f"tracker integrates {integrate} frame(s), CFAR {cfar!r}, "
+        f"fingerprints {'whitened' if whiten_modes else 'R0′ (not whitened)'}, "
+        f"null level {'max(a P·A, b Q) (eq. B2)' if null_single_scattering else 'P·A'}"
     )
     print(
         f"{'frame':>5} {'target':>10} {'track err (mm)':>15} {'argmax err (mm)':>16} {'CR radius (mm)':>15} "
@@ -258,6 +264,14 @@ def main() -> None:
         default=None,
         help="the medium's single scattering (default: the scenario's; 'field': the beads' focused speckle)",
     )
+    ap.add_argument(
+        "--no-whitening", action="store_true", help="fingerprints F = R0′, the gated calibration (paper S2, Fig. S7a)"
+    )
+    ap.add_argument(
+        "--null-single-scattering",
+        action="store_true",
+        help="the null level mixes in the beads' single-scattering level (docs/design.md §4.9, eq. B2)",
+    )
     ap.add_argument("--png", default=None, help="figure path (default out/tracking-<scenario>.png)")
     ap.add_argument("--json", default=None, help="per-frame rows and the summary as JSON")
     args = ap.parse_args()
@@ -273,7 +287,17 @@ def main() -> None:
     if args.single_scattering is not None:
         overrides["single_scattering"] = args.single_scattering
     res = run(
-        args.scenario, not args.full, args.frames, args.z, args.spacing, overrides, args.integrate, args.roi, args.cfar
+        args.scenario,
+        not args.full,
+        args.frames,
+        args.z,
+        args.spacing,
+        overrides,
+        args.integrate,
+        args.roi,
+        args.cfar,
+        whiten_modes=not args.no_whitening,
+        null_single_scattering=args.null_single_scattering,
     )
     summary = summarise(res)
     png = args.png or f"out/tracking-{args.scenario}.png"
