@@ -61,8 +61,9 @@ def add_fingerprint_arguments(p: argparse.ArgumentParser) -> None:
         "--no-whitening",
         action="store_true",
         help="fingerprint F = R0′, the gated calibration itself (paper S2, Fig. S7a), instead of its whitened "
-        "singular modes (eq. finger): in the simulated fog 1.2–11× more F_T/F_M at 2–5 ℓ_s, but it matches a "
-        "scattering layer's surface more (README, 'The paper's gain law, measured')",
+        "singular modes (eq. finger): in the simulated fog 1.2–11× more F_T/F_M at 2–5 ℓ_s; under a scattering "
+        "layer's surface it matches the beads' single scattering, which the P·A null level underrates: pair it with "
+        "--null-single-scattering there (README, 'The paper's gain law, measured')",
     )
     p.add_argument(
         "--max-pfa",
