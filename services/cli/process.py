@@ -60,6 +60,13 @@ def add_process_parser(sub: argparse._SubParsersAction) -> None:
         help="numerical fingerprint 'point' or 'mirror:L=2mm,alpha=10', repeatable",
     )
     src.add_argument("--scenario", help="calibrations of a simulator scenario's targets (e.g. sinking-sphere)")
+    src.add_argument(
+        "--no-whitening",
+        action="store_true",
+        help="calibration fingerprints F = R0′, the gated calibrations themselves (paper S2, Fig. S7a), instead of "
+        "their whitened modes; pair with --null-single-scattering under a scattering layer (README, 'The paper's gain "
+        "law, measured')",
+    )
     add_velocity_arguments(src)
     src.add_argument("--full", action="store_true", help="full-size scenario (default: quick)")
     add_scenario_arguments(p)
@@ -154,6 +161,10 @@ def specs_from_args(args: argparse.Namespace) -> list[FingerprintSpec]:
 
         kwargs = scenario_kwargs(args, args.scenario)
         specs.extend(SimulatorSource(args.scenario, quick=not args.full, **kwargs).fingerprint_specs())
+    if args.no_whitening:
+        if not args.calibration and not args.scenario:
+            raise ValueError("--no-whitening: applies to calibration fingerprints (a model has no modes to whiten)")
+        specs = [dataclasses.replace(sp, whiten_modes=False) if sp.calibration is not None else sp for sp in specs]
     vgrid = velocity_grid_from_args(args)
     return [dataclasses.replace(sp, velocity_grid=vgrid) for sp in specs] if vgrid is not None else specs
 
