@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+from services.bus import free_port
 from services.cli import main
 
 
@@ -32,7 +33,8 @@ def test_demo_options_r0_prime_and_the_single_scattering_null_reach_2_5_ls(tmp_p
     the seed-0 medium detects sphere 1 (measured PFA 5.5e-14) and nothing off a sphere; sphere 2 stands at PFA ≈ 0.02
     there (the tracker takes it from frame 3 on)."""
     argv = ["demo", "--frames", "1", "--depth-ls", "2.5", "--no-whitening", "--null-single-scattering"]
-    rc = main([*argv, "--out", str(tmp_path)])
+    hub = f"tcp/127.0.0.1:{free_port()}"  # not the well-known hub, which another test checks is free
+    rc = main([*argv, "--out", str(tmp_path), "--listen", hub])
     assert rc == 0
     assert "options: F = R0′, null level with eq. (B2)" in capsys.readouterr().out
     summary = json.loads((tmp_path / "pipeline_summary.json").read_text())
