@@ -46,14 +46,6 @@ def main() -> None:
     fog._reset()  # frame 0's draws
     multiple, single = background.next_orders()
     assert single is not None, "the default layer draws the beads' single scattering as a field"
-    pulse = fog.pulse.spectrum(fog.freqs).astype(np.float32)[:, None, None]
-
-    def frame_of(h: np.ndarray, noise: bool) -> fpcore.Acquisition:
-        rf = fog.window.synthesize(h * pulse, fog.bins)
-        if noise:
-            fog._electronic_noise(rf, fog.noise_rms, (2, 0))  # the frame's own noise draw (Scenario.frame)
-        return fog._acquisition(rf, 0, fog.ground_truth(0))
-
     parts = {
         "whole target-free frame": (static + multiple + single, True),
         "interface (static part)": (static, False),
@@ -66,7 +58,7 @@ def main() -> None:
     print(f"seed {args.seed}, frame 0 without targets, {args.fingerprint}'s {kind}; grid {grid.shape}")
     node: tuple[int, ...] | None = None
     for label, (h, noise) in parts.items():
-        acq = frame_of(h, noise)
+        acq = fog.acquisition_of(h, 0, noise)
         pw = imager.plane_waves(acq)
         r_norm = float(np.linalg.norm(pw.data))
         locs = {lname: fpcore.locate(imager, acq, fp, level, pw=pw, max_pfa=None) for lname, level in levels.items()}

@@ -276,9 +276,17 @@ class Scenario:
         if bg is not None:
             h += bg.next()
         self._next = i + 1
+        return self.acquisition_of(h, i)
+
+    def acquisition_of(self, h: np.ndarray, i: int, noise: bool = True) -> Acquisition:
+        """Frame i's acquisition of a transfer H (N_f, N_u, N_θ) on the band bins: the pulse's spectrum, the
+        record's synthesis and (noise=True) frame i's own electronic-noise draw — what `frame` does to the
+        scene's H. A part of a frame's H alone (`DiffuseBackground.next_orders`, `static_transfer`) gives that
+        part's frame, e.g. to map a fingerprint on it (γ's numerator is linear in R, paper eq. P)."""
         x = h * self.pulse.spectrum(self.freqs).astype(np.float32)[:, None, None]
         rf = self.window.synthesize(x, self.bins)
-        self._electronic_noise(rf, self.noise_rms, (2, i))
+        if noise:
+            self._electronic_noise(rf, self.noise_rms, (2, i))
         return self._acquisition(rf, i, self.ground_truth(i))
 
     def _moving_target_h(self, pl: Placement, i: int) -> np.ndarray:
@@ -301,8 +309,7 @@ class Scenario:
         echo, e.g. for the confocal contrast C_I of the paper's eq. (1) against `without_targets()`."""
         pl = self.placements[name]
         h = self._moving_target_h(pl, i) if pl.moving else self._target_h(pl, pl.position(i), pl.in_medium)
-        rf = self.window.synthesize(h * self.pulse.spectrum(self.freqs).astype(np.float32)[:, None, None], self.bins)
-        return self._acquisition(rf, i, self.ground_truth(i))
+        return self.acquisition_of(h, i, noise=False)
 
     def without_targets(self) -> Scenario:
         """The same rig, medium and noise with no target in the scene: fog-only frames, the null

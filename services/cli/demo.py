@@ -16,7 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
+from fpcore.cfar import DEFAULT_CFAR
 from services.bus import DEFAULT_HUB
+from services.cli.fingerprint_args import add_null_arguments, add_whitening_argument
 from services.cli.output import make_console
 from services.cli.scenario_args import add_scenario_arguments, depth_note, scenario_kwargs
 
@@ -41,18 +43,8 @@ def add_demo_parser(sub: argparse._SubParsersAction) -> None:
     demo.add_argument("--full", action="store_true", help="full-size scenario (default: quick)")
     demo.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     add_scenario_arguments(demo, default_depth_ls=DEMO_DEPTH_LS)
-    demo.add_argument(
-        "--no-whitening",
-        action="store_true",
-        help="fingerprints F = R0′, the gated calibrations themselves (paper S2, Fig. S7a), instead of their whitened "
-        "modes: they reach deeper in the simulated fog; pair with --null-single-scattering (README, 'The paper's gain "
-        "law, measured')",
-    )
-    demo.add_argument(
-        "--null-single-scattering",
-        action="store_true",
-        help="mix the beads' single-scattering level into the null level (docs/design.md §4.9, eq. B2)",
-    )
+    add_whitening_argument(demo)
+    add_null_arguments(demo)
     demo.add_argument("--rig", default="demo", help="rig name in the key expressions (default demo)")
     demo.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     demo.add_argument(
@@ -96,7 +88,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     source = QuantisedSource(sim, args.adc_bits) if args.adc_bits else sim
     # The default grid: the record's whole time window, the suspension's surface included — no depth
     # window chosen from the truth; detections are judged on their local significance (docs/design.md §4.9).
-    cfg = ProcessorConfig(rig=args.rig, queue="fifo", single_scattering_null=args.null_single_scattering)
+    cfg = ProcessorConfig(
+        rig=args.rig, queue="fifo", single_scattering_null=args.null_single_scattering, cfar=args.cfar
+    )
     specs = [replace(spec, whiten_modes=not args.no_whitening) for spec in sim.fingerprint_specs()]
     rows: list[tuple] = []
     last: dict = {}
@@ -150,9 +144,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
         f"recorder; default grid (the record's whole time window); detections at calibrated PFA < "
         f"{cfg.max_pfa:g}; writing to {args.out}"
     )
-    if args.no_whitening or args.null_single_scattering:
-        options = ["F = R0′"] if args.no_whitening else []
-        options += ["null level with eq. (B2)"] if args.null_single_scattering else []
+    options = ["F = R0′"] if args.no_whitening else []
+    options += ["null level with eq. (B2)"] if args.null_single_scattering else []
+    options += [f"CFAR {args.cfar!r}"] if args.cfar != DEFAULT_CFAR else []
+    if options:
         console.print(f"options: {', '.join(options)}")
     note = depth_note(sim.scenario)
     if note:

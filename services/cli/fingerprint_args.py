@@ -22,6 +22,7 @@ from services.units import parse_length, parse_position
 __all__ = [
     "add_fingerprint_arguments",
     "add_velocity_arguments",
+    "add_whitening_argument",
     "calibration_name",
     "calibration_r0",
     "fingerprint_spec",
@@ -57,14 +58,7 @@ def add_fingerprint_arguments(p: argparse.ArgumentParser) -> None:
         default="front",
         help="calibration time gate: 'front' (paper: after the front face's echo) or 'none'",
     )
-    p.add_argument(
-        "--no-whitening",
-        action="store_true",
-        help="fingerprint F = R0′, the gated calibration itself (paper S2, Fig. S7a), instead of its whitened "
-        "singular modes (eq. finger): in the simulated fog 1.2–11× more F_T/F_M at 2–5 ℓ_s; under a scattering "
-        "layer's surface it matches the beads' single scattering, which the P·A null level underrates: pair it with "
-        "--null-single-scattering there (README, 'The paper's gain law, measured')",
-    )
+    add_whitening_argument(p)
     p.add_argument(
         "--max-pfa",
         type=number_in(0, 1),
@@ -73,6 +67,18 @@ def add_fingerprint_arguments(p: argparse.ArgumentParser) -> None:
     )
     add_null_arguments(p)
     p.add_argument("--dataset", help="dataset name inside the UFF file(s) when there are several")
+
+
+def add_whitening_argument(p: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """--no-whitening (docs/design.md §4.4), shared by fp locate, fp track, fp process and fp demo."""
+    p.add_argument(
+        "--no-whitening",
+        action="store_true",
+        help="calibration fingerprints F = R0′, the gated calibration itself (paper S2, Fig. S7a), instead of its "
+        "whitened singular modes (eq. finger): in the simulated fog 1.2–11× more F_T/F_M at 2–5 ℓ_s; under a "
+        "scattering layer's surface it matches the beads' single scattering, which the P·A null level underrates: "
+        "pair it with --null-single-scattering there (README, 'The paper's gain law, measured')",
+    )
 
 
 def add_null_arguments(p: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:

@@ -16,7 +16,7 @@ import logging
 from fpcore.geometry import to_xyz
 from fpcore.metrics import DEFAULT_MAX_PFA
 from services.bus import add_bus_arguments, bus_from_args, open_session, stop_on_signals, tune_malloc, wait_until
-from services.cli.fingerprint_args import add_null_arguments, add_velocity_arguments
+from services.cli.fingerprint_args import add_null_arguments, add_velocity_arguments, add_whitening_argument
 from services.cli.imaging import add_imaging_arguments, grid_ranges, int_at_least, number_in
 from services.cli.scenario_args import add_scenario_arguments, scenario_kwargs
 from services.models import parse_model
@@ -60,13 +60,7 @@ def add_process_parser(sub: argparse._SubParsersAction) -> None:
         help="numerical fingerprint 'point' or 'mirror:L=2mm,alpha=10', repeatable",
     )
     src.add_argument("--scenario", help="calibrations of a simulator scenario's targets (e.g. sinking-sphere)")
-    src.add_argument(
-        "--no-whitening",
-        action="store_true",
-        help="calibration fingerprints F = R0′, the gated calibrations themselves (paper S2, Fig. S7a), instead of "
-        "their whitened modes; pair with --null-single-scattering under a scattering layer (README, 'The paper's gain "
-        "law, measured')",
-    )
+    add_whitening_argument(src)
     add_velocity_arguments(src)
     src.add_argument("--full", action="store_true", help="full-size scenario (default: quick)")
     add_scenario_arguments(p)
