@@ -6,6 +6,7 @@
     python bench/validate_cfar_window.py --dim 3 --media 30 --unwhitened     # fingerprints F = R0′ (paper S2)
     python bench/validate_cfar_window.py --dim 3 --media 30 --fingerprint sphere2   # another target's fingerprint
     python bench/validate_cfar_window.py --dim 3 --media 30 --null-single-scattering   # the null level with eq. (B2)
+    python bench/validate_cfar_window.py --dim 3 --media 30 --time-weighting   # γ of R/v(t) (eq. W1)
 
 One frame per simulated medium (frames of one medium are correlated), the quick rig, the default grid (the
 record's whole time window) and the physical null level P·A of eq. (B1), exactly what `fpcore.locate` uses;
@@ -68,6 +69,11 @@ def main() -> None:
         action="store_true",
         help="the null level mixes in the beads' single-scattering level (eq. B2, NullLevel(single_scattering=True))",
     )
+    ap.add_argument(
+        "--time-weighting",
+        action="store_true",
+        help="map the frame weighted by its own inverse variance v(t) (eq. W1, fpcore.inverse_variance_weighted)",
+    )
     args = ap.parse_args()
     if args.media < 1:
         ap.error("--media: expected >= 1")
@@ -100,6 +106,8 @@ def main() -> None:
             if not args.targets:
                 sc = sc.without_targets()
             acq = sc.frame(0)
+            if args.time_weighting:
+                acq = fpcore.inverse_variance_weighted(acq)
             pw = imager.plane_waves(acq)
             res = resolution_of(grid, acq, sc.band)
             lam, bw = acq.c0 / acq.probe.centre_frequency, sc.band[1] - sc.band[0]
@@ -124,6 +132,8 @@ def main() -> None:
         kind += f", {args.fingerprint}'s"
     if args.null_single_scattering:
         kind += ", null level max(a P·A, b Q) (eq. B2)"
+    if args.time_weighting:
+        kind += ", frame weighted by 1/v(t) (eq. W1)"
     print(f"\n{name}, {args.media} media from seed {args.seed0}, {opts or 'scenario defaults'}, {kind}:")
     for cname in CFAR_NAMES:
         p = np.asarray(pfas[cname])

@@ -332,6 +332,7 @@ def headline(
     scenario: str = "sinking-sphere",
     whiten_modes: bool = True,
     null_single_scattering: bool = False,
+    time_weighting: bool = False,
 ) -> list[dict]:
     """The paper's figures, measured (issue: the paper's regime). Per configuration, target and frame: C_I (the
     target's own echo — simulated alone through the medium — at its brightest point over the fog's mean confocal
@@ -340,7 +341,9 @@ def headline(
     significant peak (fpcore.locate on the whole record: distance to the truth, calibrated PFA) against the
     Cramér–Rao radius. `scenario`: the sinking spheres (3-D) or their 2-D analogue, the sinking cylinders;
     whiten_modes=False: the fingerprints are R0′ itself (paper S2, Fig. S7a; `from_calibration`);
-    null_single_scattering: the detector's null level with eq. (B2) (docs/design.md §4.9)."""
+    null_single_scattering: the detector's null level with eq. (B2) (docs/design.md §4.9); time_weighting: γ and
+    its null level on the frame weighted by its own 1/v(t) (eq. W1, docs/design.md §4.14; C_I stays the
+    unweighted image's)."""
     configs = configs or {
         "paper (default)": {},
         "paper's stated positions": {"sink": sim.scenarios.PAPER_POSITIONS[0], "sphere2_depth": 7e-3},
@@ -357,7 +360,7 @@ def headline(
         first = sc.frame(0)
         grid = fpcore.Grid.for_acquisition(first, sc.band)  # the default grid: the record's whole time window
         grid_c = replace(sc.roi, z_range=(17e-3, sc.roi.z_range[1])).grid()  # confocal from 1 mm under z_s
-        imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
+        imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band, time_weighting=time_weighting))
         imager_c = fpcore.Imager(fpcore.ImagingConfig(grid_c, band=sc.band))
         level = fpcore.NullLevel(imager, single_scattering=null_single_scattering)
         mesh = np.meshgrid(*grid_c.axes, indexing="ij")
@@ -525,6 +528,11 @@ def main() -> None:
         help="the headline only, its null level with eq. (B2) (docs/design.md §4.9)",
     )
     ap.add_argument(
+        "--time-weighting",
+        action="store_true",
+        help="the headline only, γ of each frame weighted by its own 1/v(t) (eq. W1, docs/design.md §4.14)",
+    )
+    ap.add_argument(
         "--scenario",
         default="sinking-sphere",
         choices=("sinking-sphere", "sinking-cylinder"),
@@ -532,13 +540,18 @@ def main() -> None:
     )
     args = ap.parse_args()
     t0 = time.perf_counter()
-    if args.layer or args.headline_only or args.no_whitening or args.null_single_scattering:
+    if args.layer or args.headline_only or args.no_whitening or args.null_single_scattering or args.time_weighting:
         from validate_background import parse_layer
 
         kw = parse_layer(args.layer)
         label = "paper" + "".join(f", {k}={v}" for k, v in kw.items()) + (", F = R0′" if args.no_whitening else "")
         label += ", null (B2)" if args.null_single_scattering else ""
-        opts = {"whiten_modes": not args.no_whitening, "null_single_scattering": args.null_single_scattering}
+        label += ", 1/v(t)" if args.time_weighting else ""
+        opts = {
+            "whiten_modes": not args.no_whitening,
+            "null_single_scattering": args.null_single_scattering,
+            "time_weighting": args.time_weighting,
+        }
         headline(True, [0, 31], {label: kw}, args.scenario, **opts)
         if args.full:
             headline(False, [0], {label: kw}, args.scenario, **opts)

@@ -50,10 +50,12 @@ def run(
     cfar: str = DEFAULT_CFAR,
     whiten_modes: bool = True,
     null_single_scattering: bool = False,
+    time_weighting: bool = False,
 ) -> dict[str, Any]:
     """Simulate, image, track over the scenario's region of interest (depths `z_range` if given);
     returns per-target rows and the mean confocal image. whiten_modes=False: fingerprints F = R0′ (paper S2,
-    Fig. S7a); null_single_scattering: the null level with eq. (B2) (docs/design.md §4.9)."""
+    Fig. S7a); null_single_scattering: the null level with eq. (B2) (docs/design.md §4.9); time_weighting: each
+    frame weighted by its own 1/v(t) before γ (eq. W1, docs/design.md §4.14)."""
     sc = scenario(name, quick=quick, seed=0, **overrides)
     n = sc.n_frames if n_frames is None else min(n_frames, sc.n_frames)
     if use_roi or z_range is not None:
@@ -62,7 +64,7 @@ def run(
     else:
         grid = fpcore.Grid.for_acquisition(sc.frame(0), sc.band, spacing=spacing)  # the whole record
     z_range = (float(grid.z[0]), float(grid.z[-1]))
-    imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
+    imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band, time_weighting=time_weighting))
     level = fpcore.NullLevel(imager, cfar=cfar, single_scattering=null_single_scattering)
     fps = sc.fingerprints(imager.out_sines_for(sc.frame(0)), whiten_modes=whiten_modes)
     lam = sc.c0 / sc.probe.centre_frequency
@@ -80,6 +82,7 @@ def run(
         f"tracker integrates {integrate} frame(s), CFAR {cfar!r}, "
         f"fingerprints {'whitened' if whiten_modes else 'R0′ (not whitened)'}, "
         f"null level {'max(a P·A, b Q) (eq. B2)' if null_single_scattering else 'P·A'}"
+        + (", frames weighted by 1/v(t) (eq. W1)" if time_weighting else "")
     )
     print(
         f"{'frame':>5} {'target':>10} {'track err (mm)':>15} {'argmax err (mm)':>16} {'CR radius (mm)':>15} "
@@ -272,6 +275,11 @@ def main() -> None:
         action="store_true",
         help="the null level mixes in the beads' single-scattering level (docs/design.md §4.9, eq. B2)",
     )
+    ap.add_argument(
+        "--time-weighting",
+        action="store_true",
+        help="each frame weighted by its own 1/v(t) before γ (eq. W1, docs/design.md §4.14)",
+    )
     ap.add_argument("--png", default=None, help="figure path (default out/tracking-<scenario>.png)")
     ap.add_argument("--json", default=None, help="per-frame rows and the summary as JSON")
     args = ap.parse_args()
@@ -298,6 +306,7 @@ def main() -> None:
         args.cfar,
         whiten_modes=not args.no_whitening,
         null_single_scattering=args.null_single_scattering,
+        time_weighting=args.time_weighting,
     )
     summary = summarise(res)
     png = args.png or f"out/tracking-{args.scenario}.png"

@@ -35,6 +35,7 @@ from .kernel import GridTransform, direct_sum, wavevectors
 from .likelihood import Imager, ImagingConfig
 from .locate import Located, locate
 from .metrics import Detection, contrasts, cramer_rao_precision, detect, paper_pfa
+from .time_weighting import inverse_variance_weighted
 from .truth import TargetTruth, Truth
 
 __version__ = "0.1.0"
@@ -62,6 +63,7 @@ __all__ = [
     "detect",
     "direct_sum",
     "from_calibration",
+    "inverse_variance_weighted",
     "locate",
     "mirror_fingerprint",
     "moving_fingerprint",

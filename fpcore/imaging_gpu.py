@@ -107,8 +107,10 @@ class DeviceImager(Imager):
         return kern
 
     def plane_waves(self, acq: Acquisition) -> DevicePlaneWaveData:
-        """R_θθ(f, θ_out, θ_in) computed and kept on the device (docs/design.md §4.1–4.2)."""
+        """R_θθ(f, θ_out, θ_in) computed and kept on the device (docs/design.md §4.1–4.2), of the frame weighted
+        by 1/v(t) when the configuration says so (`Imager.weighted`)."""
         xp = self.backend.xp
+        acq = self.weighted(acq)
         spec = acq.spectrum(self.config.band[0], self.config.band[1], self.config.n_freq, xp=xp)
         pw = to_plane_waves(spec, self.out_sines_for(acq), xp=xp)
         return DevicePlaneWaveData(pw.data, pw.freqs, pw.out_sines, pw.in_sines, pw.c0, self.backend)

@@ -28,6 +28,7 @@ from .kernel import GridTransform, Kernel, KernelType, wavevectors
 from .kernel_gpu import GpuTransform
 from .kernel_presum import PresumTransform
 from .support import SupportProduct, angular_support
+from .time_weighting import inverse_variance_weighted
 
 __all__ = ["Imager", "ImagingConfig", "KERNELS", "make_kernel"]
 
@@ -103,6 +104,8 @@ class ImagingConfig:
     apodization_tiles: split the grid into this many tiles per axis and apply the shift apodization
     A(θ_out, r) A(θ_in, r) of paper eq. BF at each tile's centre (docs/design.md §5); None: no shift apodization
     (the angular filter acts at r0 only and ‖F(r)‖ is constant).
+    time_weighting: weigh every frame by its own inverse variance 1/v(t) before the band selection (eq. W1,
+    fpcore.time_weighting): γ's numerator becomes the matched filter in a fog that decays in time.
     """
 
     grid: Grid
@@ -112,6 +115,7 @@ class ImagingConfig:
     eps: float = 1e-5
     apodization_tiles: tuple[int, ...] | None = None
     kernel: str = "auto"
+    time_weighting: bool = False
 
     def __post_init__(self) -> None:
         if self.kernel != "auto" and self.kernel not in KERNELS:
@@ -149,8 +153,14 @@ class Imager:
             acq.probe, acq.c0, self.config.band[1], field_width=width, transmit_sines=acq.sequence.sines
         )
 
+    def weighted(self, acq: Acquisition) -> Acquisition:
+        """The frame as this imager maps it: weighted by 1/v(t) with `time_weighting` (eq. W1), else itself."""
+        return inverse_variance_weighted(acq) if self.config.time_weighting else acq
+
     def plane_waves(self, acq: Acquisition) -> PlaneWaveData:
-        """Band selection and output projection: R_θθ(f, θ_out, θ_in) (docs/design.md §4.1–4.2)."""
+        """Band selection and output projection: R_θθ(f, θ_out, θ_in) (docs/design.md §4.1–4.2), of the frame
+        weighted by 1/v(t) when the configuration says so (`weighted`)."""
+        acq = self.weighted(acq)
         spec = acq.spectrum(self.config.band[0], self.config.band[1], self.config.n_freq)
         return to_plane_waves(spec, self.out_sines_for(acq))
 

@@ -29,10 +29,12 @@ def make_imager(
     eps: float | None = None,
     n_fingerprints: int = 1,
     memory_budget: int | None = None,
+    time_weighting: bool = False,
 ) -> Imager:
     """An Imager for frames like ``acq``: ``grid``, else ``Grid.for_acquisition`` with ``ranges``
     (x_range, y_range, z_range, spacing); ``n_out`` output directions per lateral axis (None: the
-    elements); ``eps`` the NUFFT tolerance (None: fpcore's default)."""
+    elements); ``eps`` the NUFFT tolerance (None: fpcore's default); ``time_weighting``: each frame weighted by
+    1/v(t) before γ (``fpcore.ImagingConfig.time_weighting``)."""
     if grid is None:
         check_grid_axes(acq, band, ranges or {}, memory_budget)
         grid = Grid.for_acquisition(acq, band, **(ranges or {}))
@@ -44,7 +46,7 @@ def make_imager(
         out_sines = output_sines(acq.probe, acq.c0, band[1], n=n_out)
     extra = {} if eps is None else {"eps": eps}
     # On a CUDA device (fp --device, FP_DEVICE) the whole frame's imaging runs there; else the host Imager.
-    return make_device_imager(ImagingConfig(grid, band, n_freq, out_sines, **extra))
+    return make_device_imager(ImagingConfig(grid, band, n_freq, out_sines, time_weighting=time_weighting, **extra))
 
 
 def check_grid_axes(

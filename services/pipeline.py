@@ -77,7 +77,8 @@ class PipelineConfig:
     costs power on targets that stand out of the confocal image, and makes the image every frame); ``cfar``: the
     named CFAR setting of the null models and the tracker (fpcore.cfar.CFAR_NAMES: "compact", the default —
     calibrated on the focused single-scattering speckle and on water —, "wide", the earlier default, or
-    "both", the greater level; docs/design.md §4.9)."""
+    "both", the greater level; docs/design.md §4.9); ``time_weighting``: every frame is weighted by its own inverse
+    variance 1/v(t) before γ (docs/design.md §4.14, eq. W1; ``fpcore.ImagingConfig.time_weighting``)."""
 
     band: tuple[float, float] | None = None
     n_freq: int | None = None
@@ -97,6 +98,7 @@ class PipelineConfig:
     track_integrate: int = 1
     memory_budget: int | None = None  # bytes; None: fpcore.budget.memory_budget() (fp --memory-budget, env)
     single_scattering_null: bool = False
+    time_weighting: bool = False
     cfar: str = DEFAULT_CFAR
 
     def __post_init__(self) -> None:
@@ -205,6 +207,7 @@ class Pipeline:
                 eps=cfg.eps,
                 n_fingerprints=len(self._entries),
                 memory_budget=cfg.memory_budget,
+                time_weighting=cfg.time_weighting,
             )
             grid = imager.grid
             self._level = NullLevel(

@@ -24,3 +24,23 @@ def test_no_whitening_keeps_r0_prime_for_calibrations_and_leaves_models_alone() 
 def test_no_whitening_without_a_calibration_names_the_option() -> None:
     with pytest.raises(ValueError, match="--no-whitening: applies to calibration fingerprints"):
         specs_from_args(_args("--model", "point", "--no-whitening"))
+
+
+def test_time_weighting_reaches_the_processor_and_its_imager() -> None:
+    """--time-weighting (docs/design.md §4.14) sets PipelineConfig.time_weighting, which the imager maps with."""
+    import numpy as np
+
+    from fpcore import PlaneWaveSequence, Probe
+    from fpcore.born import born_points
+    from services.cli.process import config_from_args
+    from services.imaging_setup import make_imager
+
+    assert config_from_args(_args("--scenario", "sinking-sphere", "--time-weighting")).time_weighting
+    assert not config_from_args(_args("--scenario", "sinking-sphere")).time_weighting  # the default
+    acq = born_points(
+        Probe.linear(16, 0.3e-3, 2.5e6, 1.5e6), PlaneWaveSequence.from_angles([0.0]), [[0, 0, 10e-3]], [1]
+    )
+    for flag in (False, True):
+        imager = make_imager(acq, (2e6, 3e6), time_weighting=flag)
+        assert imager.config.time_weighting is flag
+    assert np.isfinite(imager.plane_waves(acq).data).all()

@@ -89,7 +89,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     # The default grid: the record's whole time window, the suspension's surface included — no depth
     # window chosen from the truth; detections are judged on their local significance (docs/design.md §4.9).
     cfg = ProcessorConfig(
-        rig=args.rig, queue="fifo", single_scattering_null=args.null_single_scattering, cfar=args.cfar
+        rig=args.rig,
+        queue="fifo",
+        single_scattering_null=args.null_single_scattering,
+        cfar=args.cfar,
+        time_weighting=args.time_weighting,
     )
     specs = [replace(spec, whiten_modes=not args.no_whitening) for spec in sim.fingerprint_specs()]
     rows: list[tuple] = []
@@ -146,6 +150,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     )
     options = ["F = R0′"] if args.no_whitening else []
     options += ["null level with eq. (B2)"] if args.null_single_scattering else []
+    options += ["frames weighted by 1/v(t) (eq. W1)"] if args.time_weighting else []
     options += [f"CFAR {args.cfar!r}"] if args.cfar != DEFAULT_CFAR else []
     if options:
         console.print(f"options: {', '.join(options)}")

@@ -21,6 +21,7 @@ from services.units import parse_length, parse_position
 
 __all__ = [
     "add_fingerprint_arguments",
+    "add_time_weighting_argument",
     "add_velocity_arguments",
     "add_whitening_argument",
     "calibration_name",
@@ -81,8 +82,20 @@ def add_whitening_argument(p: argparse.ArgumentParser | argparse._ArgumentGroup)
     )
 
 
+def add_time_weighting_argument(p: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """--time-weighting (docs/design.md §4.14), shared by fp locate, fp track, fp process and fp demo."""
+    p.add_argument(
+        "--time-weighting",
+        action="store_true",
+        help="weigh each frame by its own inverse variance 1/v(t) before γ (eq. W1: the matched filter in a fog "
+        "that decays in time; the null level follows the weighted frame)",
+    )
+
+
 def add_null_arguments(p: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
-    """The null model's options (docs/design.md §4.9), shared by fp locate, fp track and fp process/worker."""
+    """The null model's options (docs/design.md §4.9) and the time weighting its statistic is made with
+    (§4.14), shared by fp locate, fp track, fp process/worker and fp demo."""
+    add_time_weighting_argument(p)
     p.add_argument(
         "--null-single-scattering",
         action="store_true",

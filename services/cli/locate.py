@@ -97,7 +97,9 @@ def run_locate(args: argparse.Namespace) -> int:
     frames = read_uff(args.data, args.dataset, frames=sel)
     first = frames[0]
     band = parse_band(args.band) if args.band is not None else first.default_band()
-    imager = make_imager(first, band, ranges=grid_ranges(args), n_freq=args.n_freq, n_out=args.n_out)
+    imager = make_imager(
+        first, band, ranges=grid_ranges(args), n_freq=args.n_freq, n_out=args.n_out, time_weighting=args.time_weighting
+    )
     grid = imager.grid
     spec, cal = fingerprint_spec(args, first, model_r0=(0.0, 0.0, 0.0))
     warning = warn_r0(args, spec, cal, grid, first, band)

@@ -96,6 +96,7 @@ def run_track(args: argparse.Namespace) -> int:
         max_pfa=args.max_pfa,
         single_scattering_null=args.null_single_scattering,
         cfar=args.cfar,
+        time_weighting=args.time_weighting,
         x_range=r["x_range"],
         y_range=r["y_range"],
         z_range=r["z_range"],
