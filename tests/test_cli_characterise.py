@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
 from fpcore import PlaneWaveSequence, Probe
 from fpcore.born import born_points
@@ -12,7 +13,12 @@ from fpcore.io import write_uff
 from services.cli import main
 
 
-def test_characterise_recovers_fibre_orientation(tmp_path) -> None:
+@pytest.mark.parametrize("flags", [[], ["--time-weighting"]])
+def test_characterise_recovers_fibre_orientation(tmp_path, flags: list[str]) -> None:
+    """Two Born fibres, noiseless: their orientation within 5°. With each frame weighted by its own 1/v(t)
+    (docs/design.md §4.14) the fibres' echoes are the frame's whole energy, which the weighting takes for
+    background: 8° measured against 0.5° unweighted, bounded at 10° (the option's cost where targets rule the
+    frame; README, "With the time weighting")."""
     probe = Probe.linear(48, 0.3e-3, 2.5e6, 1.5e6)
     seq = PlaneWaveSequence.from_angles(np.linspace(-12, 12, 7))
     lam = 1540 / 3.5e6
@@ -43,12 +49,13 @@ def test_characterise_recovers_fibre_orientation(tmp_path) -> None:
             str(tmp_path / "c.npz"),
             "--png",
             str(tmp_path / "c.png"),
+            *flags,
         ]
     )
     assert rc == 0
     doc = json.loads(out.read_text())
     assert doc["truth_fibres_compared"] == 2
-    assert np.rad2deg(doc["truth_alpha_error_rad_median"]) <= 5.0
+    assert np.rad2deg(doc["truth_alpha_error_rad_median"]) <= (10.0 if flags else 5.0)
     maps = np.load(tmp_path / "c.npz")
     assert maps["alpha_rad"].shape == maps["gamma_max"].shape
     assert (tmp_path / "c.png").stat().st_size > 10_000

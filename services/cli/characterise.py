@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from services.cli.fingerprint_args import add_time_weighting_argument
 from services.cli.imaging import grid_ranges, int_at_least
 from services.cli.output import make_console, progress
 from services.units import UnitError, parse_band, parse_length
@@ -79,6 +80,7 @@ def add_characterise_parser(sub: argparse._SubParsersAction) -> None:
         default=0.25,
         help="pixels with γ_max ≥ threshold × its 99th percentile are reported (default 0.25)",
     )
+    add_time_weighting_argument(p)
     p.add_argument("--json", help="summary JSON (SI units)")
     p.add_argument("--npz", help="maps: gamma_max, alpha_rad, length_m, x_m, z_m")
     p.add_argument("--png", help="vector-field figure over the confocal image")
@@ -101,7 +103,7 @@ def run_characterise(args: argparse.Namespace) -> int:
     check_grid_axes(acq, band, ranges)
     grid = Grid.for_acquisition(acq, band, **ranges)
     check_imaging_budget(acq, band, grid, args.n_freq, None, n_fingerprints=alphas.size * lengths.size)
-    imager = Imager(ImagingConfig(grid, band, args.n_freq))
+    imager = Imager(ImagingConfig(grid, band, args.n_freq, time_weighting=args.time_weighting))
     pw = imager.plane_waves(acq)
     dic = Dictionary(family=mirror_family(lengths, alphas))
     console.print(f"{len(dic)} mirror fingerprints ({alphas.size} α × {lengths.size} L), grid {grid.shape}")

@@ -83,7 +83,7 @@ def add_whitening_argument(p: argparse.ArgumentParser | argparse._ArgumentGroup)
 
 
 def add_time_weighting_argument(p: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
-    """--time-weighting (docs/design.md §4.14), shared by fp locate, fp track, fp process and fp demo."""
+    """--time-weighting (docs/design.md §4.14), shared by fp locate, track, process, demo and characterise."""
     p.add_argument(
         "--time-weighting",
         action="store_true",
