@@ -2,6 +2,7 @@
 
     .venv/bin/python bench/gain_law.py             # quick sinking spheres, ~2 min on 2 cores
     .venv/bin/python bench/gain_law.py --full      # the full 32×32 array too (paper's depth and 3 ℓ_s), 3 min in all
+    .venv/bin/python bench/gain_law.py --time-weighting   # every part weighted by the whole frame's 1/v(t) (eq. W1)
 
 Writes out/bench/gain_law.json and out/bench/gain_law.png (G against depth, next to S4's setting and N_S·N_T).
 
@@ -46,6 +47,7 @@ from validate_simulate import PAPER, brightest_near, section  # noqa: E402
 import fpcore  # noqa: E402
 import fpcore.simulate as sim  # noqa: E402
 from fpcore.fingerprint import time_gate  # noqa: E402
+from fpcore.time_weighting import variance_envelope  # noqa: E402
 
 #: Where the background is averaged: within PATCH (m) laterally of the target and SLAB (m) of its depth (of the
 #: echo's brightest confocal point for C_I); as a second reading, over the grid's whole depth slab. The backgrounds
@@ -165,8 +167,15 @@ def in_water(sc: sim.Scenario, seeds=(1, 2, 3)) -> list[dict]:
     return rows
 
 
-def in_fog(quick: bool, depths: tuple[float | None, ...], frame: int = 0) -> list[dict]:
-    """Section 2: G of each sphere in the scenario's fog, at each depth (None: the paper's default)."""
+def weighted_by(acq: fpcore.Acquisition, weights: np.ndarray | None) -> fpcore.Acquisition:
+    """`acq` times the time weights (eq. W1, docs/design.md §4.14), or itself."""
+    return acq if weights is None else replace(acq, rf=(acq.rf * weights[None, None, :]).astype(np.float32))
+
+
+def in_fog(quick: bool, depths: tuple[float | None, ...], frame: int = 0, time_weighting: bool = False) -> list[dict]:
+    """Section 2: G of each sphere in the scenario's fog, at each depth (None: the paper's default). time_weighting:
+    the echo, the fog and the white noise each weighted by the whole frame's 1/v(t) (eq. W1: γ's numerator is linear
+    in R, so the weighted frame splits as the unweighted one does)."""
     rows = []
     for depth in depths:
         sc = sim.scenario(
@@ -177,15 +186,18 @@ def in_fog(quick: bool, depths: tuple[float | None, ...], frame: int = 0) -> lis
         grid = replace(sc.roi, z_range=(lay.z_surface + 1e-3, sc.roi.z_range[1])).grid()
         imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
         fog = sc.without_targets().frame(frame)
+        weights = 1.0 / variance_envelope(sc.frame(frame)) if time_weighting else None
         backgrounds = {
-            "fog": fog,
-            "white, the fog's envelope": white_noise_like(fog, sc.pulse.support, rms_envelope(fog)),
+            "fog": weighted_by(fog, weights),
+            "white, the fog's envelope": weighted_by(
+                white_noise_like(fog, sc.pulse.support, rms_envelope(fog)), weights
+            ),
         }
         truth = sc.ground_truth(frame)  # the targets' truth without making the frame
         for tg in truth.targets or []:
             cal = sc.calibration(tg.name)
             t = cal.ground_truth
-            echo = sc.target_echo(tg.name, frame)
+            echo = weighted_by(sc.target_echo(tg.name, frame), weights)
             z_ls = float((tg.position[2] - lay.z_surface) / lay.ls)
             variants = dict(FINGERPRINTS) if depth is None else {k: FINGERPRINTS[k] for k in list(FINGERPRINTS)[:2]}
             for kind, fp_kw in variants.items():
@@ -279,6 +291,11 @@ def plot(rows: dict[str, list[dict]], png: Path) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--full", action="store_true", help="the full 32×32 array too (the paper's depth and 3 ℓ_s)")
+    ap.add_argument(
+        "--time-weighting",
+        action="store_true",
+        help="section 2 with every part weighted by the whole frame's 1/v(t) (eq. W1, docs/design.md §4.14)",
+    )
     args = ap.parse_args()
     t0 = time.perf_counter()
     rows: dict[str, list[dict]] = {}
@@ -288,16 +305,17 @@ def main() -> None:
         section(f"1. S4's setting: each sphere in water, stationary white noise ({size})")
         rows[f"water_{size}"] = in_water(sc)
         section(f"2. In the fog, frame 0 ({size}; None = the paper's depth)")
-        rows[f"fog_{size}"] = in_fog(quick, (2.0, 3.0, 4.0, None) if quick else (3.0, None))
+        rows[f"fog_{size}"] = in_fog(
+            quick, (2.0, 3.0, 4.0, None) if quick else (3.0, None), time_weighting=args.time_weighting
+        )
     section("3. The paper's figures through S4")
     paper_through_s4()
     out = Path("out/bench")
     out.mkdir(parents=True, exist_ok=True)
-    (out / "gain_law.json").write_text(json.dumps(rows, indent=1))
-    plot(rows, out / "gain_law.png")
-    print(
-        f"\n  (rows in {out / 'gain_law.json'}, figure {out / 'gain_law.png'}; total {time.perf_counter() - t0:.0f} s)"
-    )
+    stem = "gain_law_weighted" if args.time_weighting else "gain_law"
+    (out / f"{stem}.json").write_text(json.dumps(rows, indent=1))
+    plot(rows, out / f"{stem}.png")
+    print(f"\n  (rows in {out / stem}.json, figure {out / stem}.png; total {time.perf_counter() - t0:.0f} s)")
 
 
 if __name__ == "__main__":
