@@ -72,7 +72,7 @@ def main() -> None:
     ap.add_argument(
         "--time-weighting",
         action="store_true",
-        help="map the frame weighted by its own inverse variance v(t) (eq. W1, fpcore.inverse_variance_weighted)",
+        help="map the frame weighted by its own inverse variance 1/v(t) (eq. W1, fpcore.inverse_variance_weighted)",
     )
     args = ap.parse_args()
     if args.media < 1:

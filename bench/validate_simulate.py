@@ -8,6 +8,8 @@
     .venv/bin/python bench/validate_simulate.py --headline-only --scenario sinking-cylinder   # its 2-D analogue
     .venv/bin/python bench/validate_simulate.py --headline-only --no-whitening --null-single-scattering \
         --layer depth_ls=2.5 [--full]     # F = R0′ with the null level of eq. (B2) (docs/design.md §4.9)
+    .venv/bin/python bench/validate_simulate.py --headline-only --time-weighting [--full]
+                                    # γ of each frame weighted by its own 1/v(t) (eq. W1, docs/design.md §4.14)
 
 Sections:
  1. Faran coefficients: energy conservation, rigid limit, low-frequency (equivalent fluid) limit.

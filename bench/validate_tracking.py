@@ -10,6 +10,7 @@ against the truth over the mean confocal image (with zooms and the error per fra
     python bench/validate_tracking.py --scenario sinking-cylinder       # 2D analogue
     python bench/validate_tracking.py --roi                             # the scenario's ROI (z 20–31 mm)
     python bench/validate_tracking.py --depth-ls 2.5 --no-whitening --null-single-scattering   # F = R0′, eq. (B2)
+    python bench/validate_tracking.py --depth-ls 4 --time-weighting   # each frame weighted by 1/v(t) (eq. W1)
 
 The default grid is the product's: the record's whole time window, the suspension's surface (z_s = 16
 mm) included. γ rises under that surface, so the plain global argmax (printed beside) jumps there on

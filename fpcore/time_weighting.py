@@ -13,8 +13,9 @@ filter weighs each sample by 1/v(t):
 which is eq. P applied to the weighted frame R_w = R/v. The weighting is the data's own: v(t) is the frame's
 mean energy over elements and transmits, smoothed over `smooth_s`, the same estimate a time-gain compensation
 curve is. Cauchy–Schwarz still bounds γ of R_w by 1, and the local null level of eq. (B1), made from R_w's
-own energy, is the weighted statistic's (its energy is 1/v). The fingerprint and the confocal image are left
-as they are.
+own energy, is the weighted statistic's (its energy is 1/v). The fingerprint (a calibration in water) is left as
+it is; a confocal image made from R_w is the weighted, time-gain-compensated image. Where a target's own echo rules
+v(t) the weighting takes it for background (docs/design.md §4.14 measures the cost).
 """
 
 from __future__ import annotations
