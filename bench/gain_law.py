@@ -47,7 +47,7 @@ from validate_simulate import PAPER, brightest_near, section  # noqa: E402
 import fpcore  # noqa: E402
 import fpcore.simulate as sim  # noqa: E402
 from fpcore.fingerprint import time_gate  # noqa: E402
-from fpcore.time_weighting import variance_envelope  # noqa: E402
+from fpcore.time_weighting import apply_time_weights, time_weights  # noqa: E402
 
 #: Where the background is averaged: within PATCH (m) laterally of the target and SLAB (m) of its depth (of the
 #: echo's brightest confocal point for C_I); as a second reading, over the grid's whole depth slab. The backgrounds
@@ -167,11 +167,6 @@ def in_water(sc: sim.Scenario, seeds=(1, 2, 3)) -> list[dict]:
     return rows
 
 
-def weighted_by(acq: fpcore.Acquisition, weights: np.ndarray | None) -> fpcore.Acquisition:
-    """`acq` times the time weights (eq. W1, docs/design.md §4.14), or itself."""
-    return acq if weights is None else replace(acq, rf=(acq.rf * weights[None, None, :]).astype(np.float32))
-
-
 def in_fog(quick: bool, depths: tuple[float | None, ...], frame: int = 0, time_weighting: bool = False) -> list[dict]:
     """Section 2: G of each sphere in the scenario's fog, at each depth (None: the paper's default). time_weighting:
     the echo, the fog and the white noise each weighted by the whole frame's 1/v(t) (eq. W1: γ's numerator is linear
@@ -186,10 +181,10 @@ def in_fog(quick: bool, depths: tuple[float | None, ...], frame: int = 0, time_w
         grid = replace(sc.roi, z_range=(lay.z_surface + 1e-3, sc.roi.z_range[1])).grid()
         imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
         fog = sc.without_targets().frame(frame)
-        weights = 1.0 / variance_envelope(sc.frame(frame)) if time_weighting else None
+        weights = time_weights(sc.frame(frame)) if time_weighting else np.ones(fog.n_samples)
         backgrounds = {
-            "fog": weighted_by(fog, weights),
-            "white, the fog's envelope": weighted_by(
+            "fog": apply_time_weights(fog, weights),
+            "white, the fog's envelope": apply_time_weights(
                 white_noise_like(fog, sc.pulse.support, rms_envelope(fog)), weights
             ),
         }
@@ -197,7 +192,7 @@ def in_fog(quick: bool, depths: tuple[float | None, ...], frame: int = 0, time_w
         for tg in truth.targets or []:
             cal = sc.calibration(tg.name)
             t = cal.ground_truth
-            echo = weighted_by(sc.target_echo(tg.name, frame), weights)
+            echo = apply_time_weights(sc.target_echo(tg.name, frame), weights)
             z_ls = float((tg.position[2] - lay.z_surface) / lay.ls)
             variants = dict(FINGERPRINTS) if depth is None else {k: FINGERPRINTS[k] for k in list(FINGERPRINTS)[:2]}
             for kind, fp_kw in variants.items():

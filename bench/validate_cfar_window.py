@@ -72,7 +72,7 @@ def main() -> None:
     ap.add_argument(
         "--time-weighting",
         action="store_true",
-        help="map the frame weighted by its own inverse variance 1/v(t) (eq. W1, fpcore.inverse_variance_weighted)",
+        help="map the frame weighted by its own inverse variance 1/v(t) (eq. W1, ImagingConfig.time_weighting)",
     )
     args = ap.parse_args()
     if args.media < 1:
@@ -97,7 +97,7 @@ def main() -> None:
             if grid is None:
                 first = sc.frame(0)
                 grid = Grid.for_acquisition(first, sc.band)
-                imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
+                imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band, time_weighting=args.time_weighting))
                 level = fpcore.NullLevel(imager, single_scattering=args.null_single_scattering)
                 fps = sc.fingerprints(imager.out_sines_for(first), whiten_modes=not args.unwhitened)
                 if args.fingerprint and args.fingerprint not in fps:
@@ -106,8 +106,6 @@ def main() -> None:
             if not args.targets:
                 sc = sc.without_targets()
             acq = sc.frame(0)
-            if args.time_weighting:
-                acq = fpcore.inverse_variance_weighted(acq)
             pw = imager.plane_waves(acq)
             res = resolution_of(grid, acq, sc.band)
             lam, bw = acq.c0 / acq.probe.centre_frequency, sc.band[1] - sc.band[0]

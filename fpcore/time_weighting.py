@@ -27,7 +27,7 @@ from scipy.ndimage import uniform_filter1d
 
 from .acquisition import Acquisition
 
-__all__ = ["DEFAULT_SMOOTH_S", "variance_envelope", "inverse_variance_weighted"]
+__all__ = ["DEFAULT_SMOOTH_S", "variance_envelope", "time_weights", "apply_time_weights", "inverse_variance_weighted"]
 
 #: The smoothing of v(t) (s): longer than a compact target's own echo, so that a target standing out of the
 #: background is not taken for it (a 2.4 mm cluster of points over stationary speckle: its PFA 2e-8 with 5 µs,
@@ -58,10 +58,23 @@ def variance_envelope(acq: Acquisition, smooth_s: float = DEFAULT_SMOOTH_S) -> n
     return np.maximum(v, FLOOR * typical)
 
 
-def inverse_variance_weighted(acq: Acquisition, smooth_s: float = DEFAULT_SMOOTH_S) -> Acquisition:
-    """The frame R_w = R/v(t) of eq. (W1), scaled so that its weights have a median of 1 (γ does not depend on
-    the scale); the same metadata and truth."""
+def time_weights(acq: Acquisition, smooth_s: float = DEFAULT_SMOOTH_S) -> np.ndarray:
+    """The weights 1/v(t) of eq. (W1) for this frame, scaled to a median of 1 (γ does not depend on the scale)."""
     w = 1.0 / variance_envelope(acq, smooth_s)
-    w /= float(np.median(w))
-    rf = acq.rf * w.astype(acq.rf.dtype if np.issubdtype(acq.rf.dtype, np.floating) else np.float64)
-    return replace(acq, rf=rf)
+    return w / float(np.median(w))
+
+
+def apply_time_weights(acq: Acquisition, weights: np.ndarray) -> Acquisition:
+    """`acq` with every trace multiplied by `weights(t)`; the same metadata and truth. With one frame's weights
+    applied to each of its parts (a simulated echo, the fog), the weighted frame splits as the frame does: γ's
+    numerator is linear in R (paper eq. P)."""
+    w = np.asarray(weights)
+    if w.shape != (acq.n_samples,):
+        raise ValueError(f"weights: expected one per time sample, shape ({acq.n_samples},), got {w.shape}")
+    dtype = acq.rf.dtype if np.issubdtype(acq.rf.dtype, np.floating) else np.float64
+    return replace(acq, rf=acq.rf * w.astype(dtype)[None, None, :])
+
+
+def inverse_variance_weighted(acq: Acquisition, smooth_s: float = DEFAULT_SMOOTH_S) -> Acquisition:
+    """The frame R_w = R/v(t) of eq. (W1), its weights its own (`time_weights`)."""
+    return apply_time_weights(acq, time_weights(acq, smooth_s))

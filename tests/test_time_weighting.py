@@ -10,7 +10,7 @@ import pytest
 
 import fpcore
 from fpcore.born import born_points
-from fpcore.time_weighting import inverse_variance_weighted, variance_envelope
+from fpcore.time_weighting import apply_time_weights, inverse_variance_weighted, time_weights, variance_envelope
 
 BAND = (2.0e6, 3.0e6)
 N_T = 1200
@@ -38,14 +38,16 @@ def _decay(acq: fpcore.Acquisition, db: float) -> np.ndarray:
     return 10 ** (-db * t / 20)
 
 
+#: Four resolved point reflectors from 12 to 27 mm: their echoes span 20 µs of the record.
+POINTS = np.array([[-2e-3, 0, 12e-3], [1e-3, 0, 17e-3], [-1e-3, 0, 22e-3], [0.0, 0, 27e-3]])
+
+
 @pytest.fixture(scope="module")
 def points() -> tuple[fpcore.Acquisition, np.ndarray]:
-    """Four resolved point reflectors from 12 to 27 mm (their echoes span 20 µs of the record) and r0, the
-    deepest."""
+    """The echo of POINTS and r0, the deepest."""
     probe, seq = _probe_and_sequence()
-    pts = np.array([[-2e-3, 0, 12e-3], [1e-3, 0, 17e-3], [-1e-3, 0, 22e-3], [0.0, 0, 27e-3]])
-    echo = born_points(probe, seq, pts, np.ones(4), fs=FS, n_t=N_T)
-    return echo, pts[-1]
+    echo = born_points(probe, seq, POINTS, np.ones(len(POINTS)), fs=FS, n_t=N_T)
+    return echo, POINTS[-1]
 
 
 def test_variance_envelope_recovers_the_background_envelope(points) -> None:
@@ -113,15 +115,14 @@ def test_the_matched_filter_gains_in_a_decaying_background(points) -> None:
 
     def rho(weights: np.ndarray) -> float:
         def numerator(acq: fpcore.Acquisition) -> np.ndarray:
-            pw = imager.plane_waves(replace(acq, rf=(acq.rf * weights[None, None, :]).astype(np.float32)))
+            pw = imager.plane_waves(apply_time_weights(acq, weights))
             return imager.gamma(pw, fp).astype(np.float64) * float(np.linalg.norm(pw.data))
 
         return float(numerator(echo)[it] ** 2 / np.mean(numerator(noise)[near] ** 2))
 
     plain = rho(np.ones(N_T))
-    weighted = rho(1.0 / variance_envelope(frame))
-    _, pts = points[0], np.array([[0, 0, 12e-3], [0, 0, 17e-3], [0, 0, 22e-3], [0, 0, 27e-3]])
-    v = _decay(echo, 40.0)[np.round(2 * pts[:, 2] / echo.c0 * echo.fs).astype(int)] ** 2
+    weighted = rho(time_weights(frame))
+    v = _decay(echo, 40.0)[np.round(2 * POINTS[:, 2] / echo.c0 * echo.fs).astype(int)] ** 2
     theory = float(np.mean(v) * np.mean(1 / v))
     assert theory > 2.5  # the setting is one where weighting matters
     assert 0.6 * theory < weighted / plain < 1.2 * theory, (plain, weighted, theory)
@@ -133,3 +134,5 @@ def test_bad_frames_and_settings_are_refused(points) -> None:
         inverse_variance_weighted(replace(echo, rf=np.zeros_like(echo.rf)))
     with pytest.raises(ValueError, match="smooth_s"):
         variance_envelope(echo, smooth_s=-1.0)
+    with pytest.raises(ValueError, match="weights: expected one per time sample"):
+        apply_time_weights(echo, np.ones(N_T + 1))
