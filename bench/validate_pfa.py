@@ -14,6 +14,8 @@ within 1 mm of the truth.
     python bench/validate_pfa.py                 # quick sizes; 3-D null set of 48 maps (minutes)
     python bench/validate_pfa.py --seed0 20000 --iid 300 --maps2d 1000 --maps3d 0 --power 0      # README, 2-D (20 min)
     python bench/validate_pfa.py --seed0 20000 --iid 0 --maps2d 0 --maps3d 300 --power 16        # README, 3-D (51 min)
+    python bench/validate_pfa.py --seed0 20000 --iid 0 --maps2d 300 --maps3d 48 --power 0 --time-weighting
+                                                     # the frames weighted by 1/v(t) (docs/design.md §4.14)
 
 The fog maps are one per simulated medium by default (``--frames-per-seed 1``): frames of one medium
 are correlated (the fog decorrelates over a few frames, so a fog feature that fires fires on several), and
@@ -71,8 +73,10 @@ def scenario_maps(
     medium: dict | None = None,
     single_scattering_null: bool = False,
     cfar: str = fpcore.cfar.DEFAULT_CFAR,
+    time_weighting: bool = False,
 ) -> list[dict]:
-    """Per frame: each target's fingerprint's top detection (PFA, position error if a truth exists)."""
+    """Per frame: each target's fingerprint's top detection (PFA, position error if a truth exists); with
+    ``time_weighting`` each frame is weighted by its own 1/v(t) (eq. W1, docs/design.md §4.14)."""
     rows: list[dict] = []
     seeds = int(np.ceil(n_maps / frames_per_seed))
     task = progress.add_task(f"{name} {'with targets' if with_targets else 'fog only'}", total=n_maps)
@@ -82,7 +86,7 @@ def scenario_maps(
         if grid is None:
             first = sc.frame(0)
             grid = Grid.for_acquisition(first, sc.band)  # the default grid: whole record, no window
-            imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band))
+            imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band, time_weighting=time_weighting))
             level = fpcore.NullLevel(imager, single_scattering=single_scattering_null, cfar=cfar)
             fps = sc.fingerprints(imager.out_sines_for(first))
         if not with_targets:
@@ -201,11 +205,22 @@ def main() -> None:
         default=fpcore.cfar.DEFAULT_CFAR,
         help="the CFAR setting of the null model (fpcore.cfar.CFAR_NAMES; docs/design.md §4.9)",
     )
+    ap.add_argument(
+        "--time-weighting",
+        action="store_true",
+        help="the simulated frames weighted by their own 1/v(t) before γ (eq. W1, docs/design.md §4.14; the i.i.d. "
+        "null has no time axis and is left as it is)",
+    )
     ap.add_argument("--png", default="out/bench/pfa_pp.png")
     args = ap.parse_args()
     t0 = time.perf_counter()
     medium = {"single_scattering": args.single_scattering} if args.single_scattering else None
-    opts = {"medium": medium, "single_scattering_null": args.null_single_scattering, "cfar": args.cfar}
+    opts = {
+        "medium": medium,
+        "single_scattering_null": args.null_single_scattering,
+        "cfar": args.cfar,
+        "time_weighting": args.time_weighting,
+    }
     with Progress() as progress:
         fps_ = args.frames_per_seed
         fog = {
