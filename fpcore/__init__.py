@@ -33,7 +33,7 @@ from .fingerprint import (
 from .grid import Grid, Roi
 from .kernel import GridTransform, direct_sum, wavevectors
 from .likelihood import Imager, ImagingConfig
-from .locate import Located, locate
+from .locate import Located, locate, locate_union, union_pfa
 from .metrics import Detection, contrasts, cramer_rao_precision, detect, paper_pfa
 from .time_weighting import inverse_variance_weighted
 from .truth import TargetTruth, Truth
@@ -65,6 +65,7 @@ __all__ = [
     "from_calibration",
     "inverse_variance_weighted",
     "locate",
+    "locate_union",
     "mirror_fingerprint",
     "moving_fingerprint",
     "output_sines",
@@ -72,6 +73,7 @@ __all__ = [
     "point_fingerprint",
     "time_gate",
     "to_plane_waves",
+    "union_pfa",
     "wavevectors",
     "whiten",
 ]

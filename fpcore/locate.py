@@ -4,11 +4,14 @@
 in the fingerprint's time support × the aperture factor, fpcore.background, corrected by the CFAR of
 fpcore.cfar) → the most significant peaks with C_γ, calibrated PFA and Cramér–Rao precision, kept below
 ``max_pfa`` (fpcore.metrics.detect). The streaming pipeline (services.pipeline) runs the same steps.
+``locate_union(imagers, acq, fp)`` maps the frame with several imagers (as recorded and weighted by 1/v(t),
+docs/design.md §4.14) and keeps the most significant map's detections, their PFA by the union bound (eq. W2).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -20,7 +23,7 @@ from .grid import Grid
 from .likelihood import Imager
 from .metrics import DEFAULT_MAX_PFA, Detection, detect, resolution_cell
 
-__all__ = ["Located", "locate", "null_of", "physical_level_of", "resolution_of"]
+__all__ = ["Located", "locate", "locate_union", "null_of", "physical_level_of", "resolution_of", "union_pfa"]
 
 
 @dataclass
@@ -111,3 +114,42 @@ def locate(
         max_pfa=max_pfa,
     )
     return Located(gamma, nm, dets)
+
+
+def union_pfa(pfa: float, n_maps: int) -> float:
+    """Eq. (W2) of docs/design.md §4.14: a node taken from whichever of `n_maps` statistics' maps is the most
+    significant, each map calibrated on its own, has the PFA n_maps × its own, capped at 1. Under the null,
+    P(K min_k p_k < α) ≤ Σ_k P(p_k < α/K) ≤ α whatever the maps' dependence (Bonferroni)."""
+    if not 0.0 <= pfa <= 1.0:
+        raise ValueError(f"pfa: expected a probability in [0, 1], got {pfa}")
+    if n_maps < 1:
+        raise ValueError(f"n_maps: expected at least 1, got {n_maps}")
+    return min(1.0, n_maps * float(pfa))
+
+
+def locate_union(
+    imagers: Sequence[Imager],
+    acq: Acquisition,
+    fp: Fingerprint,
+    levels: Sequence[NullLevel] | None = None,
+    *,
+    n_peaks: int = 1,
+    max_pfa: float | None = DEFAULT_MAX_PFA,
+) -> tuple[Located, int]:
+    """The frame located on each imager's map (e.g. the frame as recorded and weighted by 1/v(t), eq. W1); the map
+    whose most significant node is the most significant of all, every PFA of its detections by eq. (W2), kept
+    below `max_pfa`. Returns that map's Located and its imager's index. `levels`: one NullLevel per imager, kept
+    between frames (default: new ones)."""
+    if not imagers:
+        raise ValueError("imagers: expected one or more Imagers")
+    if levels is not None and len(levels) != len(imagers):
+        raise ValueError(f"levels: expected one per imager ({len(imagers)}), got {len(levels)}")
+    found = [
+        locate(im, acq, fp, None if levels is None else levels[k], n_peaks=n_peaks, max_pfa=None)
+        for k, im in enumerate(imagers)
+    ]
+    best = min(range(len(found)), key=lambda k: found[k].detections[0].pfa if found[k].detections else 1.0)
+    dets = [replace(d, pfa=union_pfa(d.pfa, len(imagers))) for d in found[best].detections]
+    if max_pfa is not None:
+        dets = [d for d in dets if d.pfa < max_pfa]
+    return Located(found[best].gamma, found[best].null, dets), best
