@@ -135,17 +135,18 @@ def locate_union(
     *,
     n_peaks: int = 1,
     max_pfa: float | None = DEFAULT_MAX_PFA,
+    interior: bool = False,
 ) -> tuple[Located, int]:
     """The frame located on each imager's map (e.g. the frame as recorded and weighted by 1/v(t), eq. W1); the map
     whose most significant node is the most significant of all, every PFA of its detections by eq. (W2), kept
     below `max_pfa`. Returns that map's Located and its imager's index. `levels`: one NullLevel per imager, kept
-    between frames (default: new ones)."""
+    between frames (default: new ones); `n_peaks`, `interior`: as `locate`'s."""
     if not imagers:
         raise ValueError("imagers: expected one or more Imagers")
     if levels is not None and len(levels) != len(imagers):
         raise ValueError(f"levels: expected one per imager ({len(imagers)}), got {len(levels)}")
     found = [
-        locate(im, acq, fp, None if levels is None else levels[k], n_peaks=n_peaks, max_pfa=None)
+        locate(im, acq, fp, None if levels is None else levels[k], n_peaks=n_peaks, max_pfa=None, interior=interior)
         for k, im in enumerate(imagers)
     ]
     best = min(range(len(found)), key=lambda k: found[k].detections[0].pfa if found[k].detections else 1.0)

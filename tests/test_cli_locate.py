@@ -179,3 +179,28 @@ def test_locate_with_the_time_weighting(files, tmp_path) -> None:
         (d,) = f["detections"]
         assert d["truth_error_m"] < 1e-3, d
         assert d["pfa"] < 1e-3, d
+
+
+def test_locate_with_the_union_of_both_statistics(files, tmp_path, capsys) -> None:
+    """--union (docs/design.md §4.14, eq. W2) maps each frame as recorded and weighted by 1/v(t) and keeps the more
+    significant map's detection at twice its PFA: the marker is found where it is, each frame names the map it
+    came from, and its PFA is twice the one that map alone reports."""
+    args = ["locate", str(files / "data.uff"), "--calibration", str(files / "cal.uff"), "--n-freq", "24"]
+    out, alone = tmp_path / "union.json", {}
+    assert main([*args, "--union", "--json", str(out)]) == 0
+    assert "statistic: the union" in capsys.readouterr().out
+    union = json.loads(out.read_text())["frames"]
+    for flag, name in (([], "as recorded"), (["--time-weighting"], "weighted")):
+        path = tmp_path / f"{name}.json"
+        assert main([*args, *flag, "--max-pfa", "1", "--json", str(path)]) == 0
+        alone[name] = json.loads(path.read_text())["frames"]
+    for k, f in enumerate(union):
+        (d,) = f["detections"]
+        assert d["truth_error_m"] < 1e-3, d
+        (same,) = alone[f["statistic"]][k]["detections"]
+        assert d["position_m"] == same["position_m"]
+        assert d["pfa"] == pytest.approx(min(1.0, 2 * same["pfa"]), rel=1e-9)
+        other = alone["weighted" if f["statistic"] == "as recorded" else "as recorded"][k]["detections"][0]
+        assert same["pfa"] <= other["pfa"]  # the union took the more significant map
+    assert main([*args, "--union", "--time-weighting"]) == 2
+    assert "--union: maps the frames both as recorded and weighted" in capsys.readouterr().err

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fpcore import Acquisition, Fingerprint, NullLevel, locate, moving_fingerprint
+from fpcore import Acquisition, Fingerprint, NullLevel, locate, locate_union, moving_fingerprint
 from fpcore.geometry import to_xyz
 from services.cli.fingerprint_args import add_fingerprint_arguments, fingerprint_spec, warn_r0
 from services.cli.imaging import add_imaging_arguments, grid_ranges
@@ -52,6 +52,13 @@ def add_locate_parser(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="heuristic: skip maxima closer than the diffraction resolution to the grid's border "
         "(off by default: the local significance does not need it)",
+    )
+    p.add_argument(
+        "--union",
+        action="store_true",
+        help="map each frame both as recorded and weighted by 1/v(t), and keep the more significant map's "
+        "detections at twice their PFA (eq. W2, docs/design.md §4.14): the weighting's gain in a fog that decays, "
+        "without its cost on a target that rules its frame's energy",
     )
     p.set_defaults(func=run_locate)
 
@@ -97,10 +104,15 @@ def run_locate(args: argparse.Namespace) -> int:
     frames = read_uff(args.data, args.dataset, frames=sel)
     first = frames[0]
     band = parse_band(args.band) if args.band is not None else first.default_band()
+    if args.union and args.time_weighting:
+        raise ValueError("--union: maps the frames both as recorded and weighted; drop --time-weighting")
     imager = make_imager(
         first, band, ranges=grid_ranges(args), n_freq=args.n_freq, n_out=args.n_out, time_weighting=args.time_weighting
     )
     grid = imager.grid
+    imagers = [imager]
+    if args.union:  # docs/design.md §4.14, eq. W2: a second imager on the same grid, each frame weighted by 1/v(t)
+        imagers.append(make_imager(first, band, grid, n_freq=args.n_freq, n_out=args.n_out, time_weighting=True))
     spec, cal = fingerprint_spec(args, first, model_r0=(0.0, 0.0, 0.0))
     warning = warn_r0(args, spec, cal, grid, first, band)
     if warning:
@@ -125,17 +137,26 @@ def run_locate(args: argparse.Namespace) -> int:
     table = Table(title=f"fp locate {args.data}")
     for col in ("frame", "position (mm)", "γ_max", "C_γ", "C", "PFA", "δρ_L, δz_L (mm)", "error (mm)"):
         table.add_column(col, justify="right")
-    level = NullLevel(imager, single_scattering=args.null_single_scattering, cfar=args.cfar)
+    levels = [NullLevel(im, single_scattering=args.null_single_scattering, cfar=args.cfar) for im in imagers]
+    if args.union:
+        console.print("statistic: the union of the frames as recorded and weighted by 1/v(t) (eq. W2: PFA × 2)")
     with progress(console) as bar:
         task = bar.add_task("γ-maps", total=len(frames))
         for acq in frames:
-            pw = imager.plane_waves(acq)
-            found = locate(
-                imager, acq, fp, level, pw=pw, n_peaks=args.targets, max_pfa=args.max_pfa, interior=args.skip_border
-            )
+            chosen = 0
+            if args.union:
+                found, chosen = locate_union(
+                    imagers, acq, fp, levels, n_peaks=args.targets, max_pfa=args.max_pfa, interior=args.skip_border
+                )
+            else:
+                found = locate(
+                    imager, acq, fp, levels[0], n_peaks=args.targets, max_pfa=args.max_pfa, interior=args.skip_border
+                )
             gamma, dets = found.gamma, found.detections
             truths = truth_positions(acq.ground_truth)
             row = {"frame_index": acq.frame_index, "timestamp_s": acq.timestamp, "detections": []}
+            if args.union:
+                row["statistic"] = "weighted" if chosen else "as recorded"
             for d in dets:
                 pos = np.array(d.position_m)
                 err = truth_error(pos, truths)  # the nearest target, whatever its name
@@ -190,7 +211,7 @@ def run_locate(args: argparse.Namespace) -> int:
         gamma_over_confocal(
             args.png,
             grid,
-            imager.confocal(pw),
+            imager.confocal(imager.plane_waves(acq)),
             gamma,
             np.array(dets[0].position_m),
             truth=truth,
