@@ -1,8 +1,9 @@
 """The union of the unweighted and time-weighted statistics (docs/design.md §4.14, eq. W2), on simulated media.
 
 Each medium's frame is located on two maps — the frame as recorded and weighted by its own 1/v(t) (eq. W1) — and on
-their union (`fpcore.locate_union`: the more significant map's node, its PFA doubled). Target-free media give the
-fraction of maps whose most significant node reports PFA < 0.05 / 0.01 / 1e-3 (calibrated: ≤ α); with --targets,
+their union (`fpcore.locate.union_of`, as `fpcore.locate_union` takes it: the more significant map's node, its PFA
+doubled). Target-free media give the fraction of maps whose most significant node reports PFA < 0.05 / 0.01 / 1e-3
+(calibrated: ≤ α); with --targets,
 every target's map, detected when its most significant node lies within 1 mm at PFA < 1e-3.
 
     python bench/validate_union.py --dim 3 --media 30 --seed0 9700                 # target-free, 3-D (~8 min)
@@ -23,6 +24,7 @@ from rich.progress import Progress
 
 import fpcore
 from fpcore import Grid
+from fpcore.locate import union_of
 from fpcore.simulate import scenario
 
 ALPHAS = (0.05, 0.01, 1e-3)
@@ -66,11 +68,9 @@ def main() -> None:
             for tname, fp in fps.items():
                 if not args.targets and tname != next(iter(fps)):
                     continue  # one map per target-free medium: independent maps
-                tops = [
-                    fpcore.locate(im, acq, fp, lev, max_pfa=None).detections[0]
-                    for im, lev in zip(imagers, levels, strict=True)
-                ]
-                union, k = fpcore.locate_union(imagers, acq, fp, levels, max_pfa=None)
+                maps = [fpcore.locate(im, acq, fp, lev, max_pfa=None) for im, lev in zip(imagers, levels, strict=True)]
+                union, k = union_of(maps, max_pfa=None)  # eq. W2 on the two maps, as fpcore.locate_union takes it
+                tops = [m.detections[0] for m in maps]
                 chosen.append(k)
                 for i, d in enumerate([*tops, union.detections[0]]):
                     pfas[i].append(d.pfa)

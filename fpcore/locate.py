@@ -23,7 +23,16 @@ from .grid import Grid
 from .likelihood import Imager
 from .metrics import DEFAULT_MAX_PFA, Detection, detect, resolution_cell
 
-__all__ = ["Located", "locate", "locate_union", "null_of", "physical_level_of", "resolution_of", "union_pfa"]
+__all__ = [
+    "Located",
+    "locate",
+    "locate_union",
+    "null_of",
+    "physical_level_of",
+    "resolution_of",
+    "union_of",
+    "union_pfa",
+]
 
 
 @dataclass
@@ -149,8 +158,17 @@ def locate_union(
         locate(im, acq, fp, None if levels is None else levels[k], n_peaks=n_peaks, max_pfa=None, interior=interior)
         for k, im in enumerate(imagers)
     ]
+    return union_of(found, max_pfa)
+
+
+def union_of(found: Sequence[Located], max_pfa: float | None = DEFAULT_MAX_PFA) -> tuple[Located, int]:
+    """Eq. (W2) on maps already located (each with `max_pfa=None`, so that its most significant node is there): the
+    map whose most significant node is the most significant of all, every PFA of its detections multiplied by the
+    number of maps, kept below `max_pfa`; and its index."""
+    if not found:
+        raise ValueError("found: expected one or more Located maps")
     best = min(range(len(found)), key=lambda k: found[k].detections[0].pfa if found[k].detections else 1.0)
-    dets = [replace(d, pfa=union_pfa(d.pfa, len(imagers))) for d in found[best].detections]
+    dets = [replace(d, pfa=union_pfa(d.pfa, len(found))) for d in found[best].detections]
     if max_pfa is not None:
         dets = [d for d in dets if d.pfa < max_pfa]
     return Located(found[best].gamma, found[best].null, dets), best

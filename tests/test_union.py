@@ -8,6 +8,7 @@ import pytest
 
 import fpcore
 from fpcore import locate_union, union_pfa
+from fpcore.locate import union_of
 
 
 @pytest.mark.parametrize("dependence", ["identical", "independent", "antithetic"])
@@ -34,6 +35,8 @@ def test_bad_pfas_are_refused() -> None:
         union_pfa(0.1, 0)
     with pytest.raises(ValueError, match="imagers: expected one or more"):
         locate_union([], None, None)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="found: expected one or more"):
+        union_of([])
 
 
 def test_the_union_keeps_a_marker_that_rules_its_frame() -> None:
