@@ -204,7 +204,9 @@ class NullModel:
 
     power: γ_M²(r), the local mean of γ² under the null, on the grid;
     fwhm: FWHM of the underlying Gaussian field per grid axis, in nodes; train_cells: independent cells
-    behind each node's level estimate; statistic: T = γ²/γ_M² on the grid.
+    behind each node's level estimate; statistic: T = γ²/γ_M² on the grid; n_maps: the number of statistics'
+    maps this one was chosen from (fpcore.locate.union_of): every PFA it reports is n_maps × its own, capped at
+    1 (docs/design.md §4.14, eq. W2, the Bonferroni bound), and `threshold` inverts that.
     """
 
     grid: Grid
@@ -216,6 +218,7 @@ class NullModel:
     visible: np.ndarray  # nodes searched (and counted as cells)
     tail_fit: tuple[float, float] | None = (4.5, 11.0)  # (u, U) of the map's own tail fit (step 2b)
     guard_nodes: tuple[int, ...] = (1, 1, 1)  # ± nodes per axis of two resolution cells (step 2b's guard)
+    n_maps: int = 1  # maps this one was chosen from (eq. W2): its PFAs are n_maps × its own, capped at 1
 
     _significance: np.ndarray | None = None
     _tail_scale: float = 1.0
@@ -264,12 +267,13 @@ class NullModel:
         return np.where(sig >= sure, score, sig)
 
     def threshold(self, pfa: float) -> float:
-        """The significance S whose calibrated PFA over the visible nodes is `pfa` (bisection on `max_tail`)."""
+        """The significance S whose calibrated PFA over the visible nodes is `pfa` (bisection on `max_tail`;
+        with `n_maps` > 1, the S where n_maps × max_tail reaches it, eq. W2)."""
         resels = self.resels()
         lo, hi = 0.0, 800.0
         for _ in range(60):
             mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if max_tail(mid, resels) > pfa else (lo, mid)
+            lo, hi = (mid, hi) if self._union(max_tail(mid, resels)) > pfa else (lo, mid)
         return hi
 
     def decided(self, max_pfa: float | None) -> float:
@@ -299,14 +303,19 @@ class NullModel:
 
     def pfa(self, value: float, mask: np.ndarray | None = None, resels: np.ndarray | None = None) -> float:
         """Calibrated false-alarm probability of a maximum S = `value` (`significance`) over `mask`
-        (default: the visible nodes)."""
-        return max_tail(value, self.resels(mask) if resels is None else resels)
+        (default: the visible nodes); × `n_maps` (eq. W2)."""
+        return self._union(max_tail(value, self.resels(mask) if resels is None else resels))
 
     def gate_pfa(self, value: float, radius_nodes: np.ndarray) -> float:
-        """PFA of a maximum S = `value` found in an ellipsoidal gate with these semi-axes (nodes)."""
+        """PFA of a maximum S = `value` found in an ellipsoidal gate with these semi-axes (nodes); × `n_maps`
+        (eq. W2)."""
         keep = np.array(self.grid.shape) > 1
         semi = np.asarray(radius_nodes, float)[keep] / self.fwhm[keep]
-        return max_tail(value, resels_ellipsoid(np.maximum(semi, 1e-6)))
+        return self._union(max_tail(value, resels_ellipsoid(np.maximum(semi, 1e-6))))
+
+    def _union(self, pfa: float) -> float:
+        """Eq. (W2): a PFA of this map, chosen among `n_maps` statistics' maps: n_maps × its own, capped at 1."""
+        return min(1.0, int(self.n_maps) * pfa)
 
 
 def _lag1_fwhm(t: np.ndarray, valid: np.ndarray, axis: int) -> float:

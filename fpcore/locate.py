@@ -30,6 +30,7 @@ __all__ = [
     "null_of",
     "physical_level_of",
     "resolution_of",
+    "union_null",
     "union_of",
     "union_pfa",
 ]
@@ -164,11 +165,20 @@ def locate_union(
 def union_of(found: Sequence[Located], max_pfa: float | None = DEFAULT_MAX_PFA) -> tuple[Located, int]:
     """Eq. (W2) on maps already located (each with `max_pfa=None`, so that its most significant node is there): the
     map whose most significant node is the most significant of all, every PFA of its detections multiplied by the
-    number of maps, kept below `max_pfa`; and its index."""
+    number of maps, kept below `max_pfa`; and its index. The returned null model carries the factor
+    (`NullModel.n_maps`), so that a PFA read from it later (a tracker's gate) is the union's too."""
     if not found:
         raise ValueError("found: expected one or more Located maps")
     best = min(range(len(found)), key=lambda k: found[k].detections[0].pfa if found[k].detections else 1.0)
     dets = [replace(d, pfa=union_pfa(d.pfa, len(found))) for d in found[best].detections]
     if max_pfa is not None:
         dets = [d for d in dets if d.pfa < max_pfa]
-    return Located(found[best].gamma, found[best].null, dets), best
+    return Located(found[best].gamma, union_null(found[best].null, len(found)), dets), best
+
+
+def union_null(null: NullModel, n_maps: int) -> NullModel:
+    """`null` as the null model of a map chosen among `n_maps` statistics' maps (eq. W2): the same map, its
+    cached significance kept, every PFA it reports n_maps × its own (`NullModel.n_maps`)."""
+    if n_maps < 1:
+        raise ValueError(f"n_maps: expected at least 1, got {n_maps}")
+    return replace(null, n_maps=n_maps)

@@ -67,12 +67,17 @@ def _vec3(v: Any) -> tuple[float, float, float]:
 
 
 def detection(
-    d: CoreDetection, state: dict[str, float], truth_error_m: float | None, velocity: VelocityEstimate | None = None
+    d: CoreDetection,
+    state: dict[str, float],
+    truth_error_m: float | None,
+    velocity: VelocityEstimate | None = None,
+    statistic: str | None = None,
 ) -> Detection:
-    """The wire Detection of a core detection (with its velocity estimate, when there is one)."""
-    extra: dict[str, Any] = {}
+    """The wire Detection of a core detection (with its velocity estimate, when there is one, and the union's
+    map it was found on, `statistic`)."""
+    extra: dict[str, Any] = {} if statistic is None else {"statistic": statistic}
     if velocity is not None:
-        extra = {
+        extra |= {
             "velocity_m_s": _vec3(velocity.velocity_m_s),
             "velocity_sigma_m_s": _vec3(velocity.sigma_m_s),
             "velocity_position_m": _vec3(velocity.position_m),
@@ -159,15 +164,21 @@ def frame_messages(
     fi, ts = frame_index, timestamp
     states = {name: numeric_state(fp) for name, fp in res.fingerprints.items()}
     vels = res.velocities or [None] * len(res.detections)
-    dets = [detection(d, states[d.fingerprint], err, v) for (d, err), v in zip(res.detections, vels, strict=True)]
+    dets = [
+        detection(d, states[d.fingerprint], err, v, res.statistic.get(d.fingerprint))
+        for (d, err), v in zip(res.detections, vels, strict=True)
+    ]
     tracks = [track(tr) for tr in res.tracks]
     wgrid = WireGrid.from_grid(res.grid)
     r_energy = float(np.vdot(res.pw.data, res.pw.data).real)
+    w_energy = float(np.vdot(res.weighted_pw.data, res.weighted_pw.data).real) if res.weighted_pw is not None else None
     gammas = []
     for name, g in res.gammas.items():
         fp = res.fingerprints[name]
         g_m = float(np.sqrt(np.mean(np.square(g, dtype=np.float64))))
-        norm = Normalisation(band_hz=res.band, r_energy=r_energy, f_energy=fp.norm2, gamma_m=g_m)
+        statistic = res.statistic.get(name)
+        energy = w_energy if statistic == "weighted" else r_energy  # the frame this map was made from
+        norm = Normalisation(band_hz=res.band, r_energy=energy, f_energy=fp.norm2, gamma_m=g_m)
         gammas.append(
             GammaMap(
                 frame_index=fi,
@@ -178,6 +189,7 @@ def frame_messages(
                 gamma=g,
                 normalisation=norm,
                 gamma_step=gamma_step(g) if quantise else None,
+                statistic=statistic,
             )
         )
     image = None

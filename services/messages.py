@@ -56,6 +56,8 @@ __all__ = [
 
 VERSION_PATTERN = r"^[0-9]+\.[0-9]+$"
 Vec3 = tuple[float, float, float]
+#: the processor's --union: the two maps of a frame, as recorded and weighted by its own 1/v(t) (docs/design.md §4.14)
+Statistic = Literal["as recorded", "weighted"]
 #: Largest physical RF amplitude a frame may carry: ``fpcore.budget.MAX_RF_ABS`` (float32 spectra and
 #: energies overflow beyond it), repeated here so that decoding never imports fpcore (tests/test_wire.py).
 MAX_RF_ABS = 1e12
@@ -271,6 +273,12 @@ class Detection(_Model):
     velocity_states: int | None = Field(
         default=None, ge=1, description="Number of velocities searched (the look-elsewhere factor; schema 1.2)."
     )
+    statistic: Statistic | None = Field(
+        default=None,
+        description="With the processor's --union: the map this detection was found on, the frame 'as recorded' or "
+        "'weighted' by its own 1/v(t); its pfa is then twice that map's own (docs/design.md §4.14, eq. W2). "
+        "None: one statistic (schema 1.3).",
+    )
 
     @model_validator(mode="after")
     def _check(self) -> Detection:
@@ -453,10 +461,11 @@ class GammaMap(Message):
     1.1 added ``gamma_step`` (optional): with it, γ travels as uint16 codes q = round(γ / gamma_step), and
     γ = q × gamma_step (error ≤ gamma_step / 2; docs/wire.md). In Python ``gamma`` is always float32:
     built from uint16 codes (decoding) it holds their values; built from float32 with a step, it is
-    quantised when encoded (:meth:`for_wire`). Without a step γ travels as float32 (1.0)."""
+    quantised when encoded (:meth:`for_wire`). Without a step γ travels as float32 (1.0). 1.2 added the optional
+    ``statistic``: with the processor's --union, which of the frame's two maps this is (eq. W2)."""
 
     schema_name: Literal["GammaMap"] = "GammaMap"
-    schema_version: str = Field(default="1.1", pattern=VERSION_PATTERN, description="MAJOR.MINOR.")
+    schema_version: str = Field(default="1.2", pattern=VERSION_PATTERN, description="MAJOR.MINOR.")
     frame_index: int = Field(ge=0)
     timestamp: float = Field(description="Acquisition time of the input frame, s.")
     fingerprint: str
@@ -471,6 +480,12 @@ class GammaMap(Message):
         gt=0,
         description="γ value of one uint16 code: γ travels as codes round(γ / gamma_step) (error ≤ "
         "gamma_step / 2); None: float32. Since 1.1.",
+    )
+    statistic: Statistic | None = Field(
+        default=None,
+        description="With the processor's --union: the map kept for this fingerprint, of the frame 'as recorded' or "
+        "'weighted' by its own 1/v(t) (docs/design.md §4.14, eq. W2; the normalisation's r_energy is then the "
+        "weighted frame's). None: one statistic. Since 1.2.",
     )
 
     @model_validator(mode="after")
@@ -557,10 +572,11 @@ class ConfocalImage(Message):
 class Detections(Message):
     """Targets detected in one frame (key ``fp/<rig>/detections``). 1.1 added ``contrast_local``; 1.2 the
     optional velocity estimate of each detection (``velocity_m_s``, ``velocity_sigma_m_s``,
-    ``velocity_position_m``, ``velocity_gamma``, ``velocity_states``)."""
+    ``velocity_position_m``, ``velocity_gamma``, ``velocity_states``); 1.3 the optional ``statistic`` (the map
+    of the union, eq. W2)."""
 
     schema_name: Literal["Detections"] = "Detections"
-    schema_version: str = Field(default="1.2", pattern=VERSION_PATTERN, description="MAJOR.MINOR.")
+    schema_version: str = Field(default="1.3", pattern=VERSION_PATTERN, description="MAJOR.MINOR.")
     frame_index: int = Field(ge=0)
     timestamp: float = Field(description="Acquisition time of the input frame, s.")
     detections: list[Detection] = Field(default_factory=list)

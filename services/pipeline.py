@@ -21,7 +21,7 @@ import time
 from collections.abc import Callable, Collection, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, get_args
 
 import numpy as np
 
@@ -29,7 +29,7 @@ from fpcore import Acquisition, Fingerprint, Grid, Imager, NullLevel
 from fpcore.acquisition import PlaneWaveData
 from fpcore.background import NullPower
 from fpcore.cfar import DEFAULT_CFAR, NullModel, check_cfar
-from fpcore.locate import null_of, physical_level_of, resolution_of
+from fpcore.locate import Located, null_of, physical_level_of, resolution_of, union_of
 from fpcore.metrics import DEFAULT_MAX_PFA, Detection
 from fpcore.tracking import Tracker, TrackState
 from fpcore.velocity import VelocityEstimate, VelocitySearch
@@ -42,10 +42,12 @@ from services.frame_steps import (
     truth_positions,
 )
 from services.imaging_setup import check_grid_axes, check_imaging_budget, imaging_estimate, make_imager
+from services.messages import Statistic
 from services.models import build_fingerprint
 from services.registry import Entry, FingerprintSpec, check_setup_size, set_changes
 
 __all__ = [
+    "UNION_STATISTICS",
     "FrameResult",
     "Pipeline",
     "PipelineConfig",
@@ -62,6 +64,11 @@ __all__ = [
 ]
 
 log = logging.getLogger("fp.pipeline")
+_Union = tuple[dict[str, str], PlaneWaveData] | None  # `Pipeline._numerics`: the union's maps kept, the weighted frame
+
+#: PipelineConfig.union's two statistics, in the order of its maps (FrameResult.statistic): the frame as recorded and
+#: weighted by its own 1/v(t) (docs/design.md §4.14, eqs. W1–W2)
+UNION_STATISTICS: tuple[str, ...] = get_args(Statistic)
 
 
 @dataclass
@@ -78,7 +85,10 @@ class PipelineConfig:
     named CFAR setting of the null models and the tracker (fpcore.cfar.CFAR_NAMES: "compact", the default —
     calibrated on the focused single-scattering speckle and on water —, "wide", the earlier default, or
     "both", the greater level; docs/design.md §4.9); ``time_weighting``: every frame is weighted by its own inverse
-    variance 1/v(t) before γ (docs/design.md §4.14, eq. W1; ``fpcore.ImagingConfig.time_weighting``)."""
+    variance 1/v(t) before γ (docs/design.md §4.14, eq. W1; ``fpcore.ImagingConfig.time_weighting``); ``union``:
+    every frame is mapped both as recorded and weighted by 1/v(t), and per fingerprint the map whose most
+    significant node is the more significant is kept — its detections and the tracker's gates at twice their PFA
+    (docs/design.md §4.14, eq. W2; ``fpcore.locate.union_of``)."""
 
     band: tuple[float, float] | None = None
     n_freq: int | None = None
@@ -99,10 +109,13 @@ class PipelineConfig:
     memory_budget: int | None = None  # bytes; None: fpcore.budget.memory_budget() (fp --memory-budget, env)
     single_scattering_null: bool = False
     time_weighting: bool = False
+    union: bool = False
     cfar: str = DEFAULT_CFAR
 
     def __post_init__(self) -> None:
         check_cfar(self.cfar, "--cfar")
+        if self.union and self.time_weighting:
+            raise ValueError("--union: maps each frame both as recorded and weighted by 1/v(t); drop --time-weighting")
         if not 0 < self.svd_threshold <= 1:
             raise ValueError(f"--svd-threshold: expected 0 < t <= 1, got {self.svd_threshold}")
         if self.n_peaks < 1:
@@ -111,6 +124,10 @@ class PipelineConfig:
             raise ValueError(f"--max-pfa: expected 0 < p <= 1, got {self.max_pfa}")
         if self.track_integrate < 1:
             raise ValueError(f"--track-integrate: expected an integer >= 1, got {self.track_integrate}")
+        if self.union and self.track_integrate > 1:  # a mean of maps chosen frame by frame has no union bound of 2
+            raise ValueError(
+                f"--track-integrate: expected 1 with --union (eq. W2 is per frame), got {self.track_integrate}"
+            )
 
 
 @dataclass
@@ -137,6 +154,10 @@ class FrameResult:
     motion: dict[str, list[VelocityEstimate]] = field(default_factory=dict)  # every estimate (tracker input)
     notices: list[str] = field(default_factory=list)  # said once per pipeline (e.g. no PRF: no velocity)
     velocity_s: float = 0.0  # time of the velocity dictionaries (included in stage 'detection')
+    # with PipelineConfig.union: per fingerprint, the map kept (UNION_STATISTICS: "as recorded" or "weighted"), and
+    # the frame's plane waves weighted by 1/v(t) (the weighted maps' normalisation)
+    statistic: dict[str, str] = field(default_factory=dict)
+    weighted_pw: PlaneWaveData | None = None
 
 
 class Pipeline:
@@ -150,6 +171,7 @@ class Pipeline:
         self.lock = threading.RLock()
         self._imager: Imager | None = None
         self._level: NullLevel | None = None
+        self._weighted: tuple[Imager, NullLevel] | None = None  # PipelineConfig.union: the 1/v(t)-weighted maps'
         self._tracker: Tracker | None = None
         self._geom: tuple | None = None
         self._band: tuple[float, float] | None = None
@@ -205,17 +227,27 @@ class Pipeline:
                 n_freq=cfg.n_freq,
                 n_out=cfg.n_out,
                 eps=cfg.eps,
-                n_fingerprints=len(self._entries),
+                n_fingerprints=len(self._entries) * (2 if cfg.union else 1),  # union: two maps each
                 memory_budget=cfg.memory_budget,
                 time_weighting=cfg.time_weighting,
             )
             grid = imager.grid
-            self._level = NullLevel(
-                imager,
-                single_scattering=self.cfg.single_scattering_null,
-                cfar=self.cfg.cfar,
-                cache=max(8, 2 * len(self._entries)),  # every fingerprint's aperture factor kept (one map each)
-            )
+
+            def level_of(im: Imager) -> NullLevel:
+                return NullLevel(
+                    im,
+                    single_scattering=cfg.single_scattering_null,
+                    cfar=cfg.cfar,
+                    cache=max(8, 2 * len(self._entries)),  # every fingerprint's aperture factor kept (one map each)
+                )
+
+            self._level = level_of(imager)
+            self._weighted = None
+            if cfg.union:  # eq. W2: a second imager on the same grid and output directions, frames weighted by 1/v(t)
+                weighted = make_imager(
+                    acq, band, grid, n_freq=cfg.n_freq, n_out=cfg.n_out, eps=cfg.eps, time_weighting=True
+                )
+                self._weighted = (weighted, level_of(weighted))
             self._band = band
             self._geom = geometry_key(acq)
             self._ref = acq
@@ -229,6 +261,11 @@ class Pipeline:
                         imager.template(pw, entry.fp)
                         # aperture factor (cached) and the null level's NUFFT plan, before the first frame is timed
                         self._level.level(acq, pw, entry.fp, resolution_of(grid, acq, band))
+                        if self._weighted is not None:  # the same for the weighted maps (union)
+                            w_imager, w_level = self._weighted
+                            w_pw = w_imager.plane_waves(acq)
+                            w_imager.template(w_pw, entry.fp)
+                            w_level.level(acq, w_pw, entry.fp, resolution_of(grid, acq, band))
                         if self.cfg.single_scattering_null:
                             self._level.speckle.point_response(pw, entry.fp)  # eq. (B2)'s |h|²
                     except ValueError as exc:
@@ -309,7 +346,7 @@ class Pipeline:
                 self._imager.forget(entry.fp)
 
     #: What a set-up replaces (rebinds, never mutates in place): saved and restored by the transactions.
-    _STATE = ("cfg", "_entries", "_imager", "_level", "_tracker", "_geom", "_band", "_ref", "setup_s")
+    _STATE = ("cfg", "_entries", "_imager", "_level", "_weighted", "_tracker", "_geom", "_band", "_ref", "setup_s")
 
     def _snapshot(self) -> dict[str, Any]:
         return {k: getattr(self, k) for k in self._STATE}
@@ -386,7 +423,7 @@ class Pipeline:
             t1 = time.perf_counter()
             want_image = cfg.publish_image if with_image is None else with_image
             grid = imager.grid
-            gammas, image, nulls, dets, tracks, t2 = self._numerics(
+            gammas, image, nulls, dets, tracks, t2, union = self._numerics(
                 acq, pw, fps, band, truth_positions(acq.ground_truth), want_image
             )
             tv = time.perf_counter()
@@ -423,6 +460,7 @@ class Pipeline:
             motion,
             notices,
             tv,
+            *(union or ({}, None)),
         )
 
     def _numerics(
@@ -434,23 +472,72 @@ class Pipeline:
         truths: Any,
         want_image: bool,
         track: bool = True,
-    ) -> tuple[dict[str, np.ndarray], np.ndarray | None, dict[str, NullModel], list, list | None, float]:
+    ) -> tuple[dict[str, np.ndarray], np.ndarray | None, dict[str, NullModel], list, list | None, float, _Union]:
         """One frame's γ-maps, confocal image (None unless ``want_image``), null models, detections and tracks
-        (`_second_stage`), and the time the maps and the image were done (perf_counter)."""
+        (`_second_stage`; with ``union``, `_union_numerics`), the time the maps and the image were done
+        (perf_counter), and with ``union`` per fingerprint the map kept and the weighted frame's plane waves
+        (else None)."""
         imager = self._imager
         assert imager is not None
+        if self._weighted is not None:
+            return self._union_numerics(acq, pw, fps, band, truths, want_image, track)
         if self.cfg.single_scattering_null:  # eq. (B2) needs the image first: no overlap
             gammas = {n: imager.gamma(pw, fp) for n, fp in fps.items()}
             image = imager.confocal(pw)
             nulls, dets, tracks = self._second_stage(acq, pw, fps, band, truths, False, image, track)(gammas)()
-            return gammas, image if want_image else None, nulls, dets, tracks, time.perf_counter()
+            return gammas, image if want_image else None, nulls, dets, tracks, time.perf_counter(), None
         stage = self._second_stage(acq, pw, fps, band, truths, True, track=track)
         gammas = {n: imager.gamma(pw, fp) for n, fp in fps.items()}
         result = stage(gammas)
         image = imager.confocal(pw) if want_image else None
         t_done = time.perf_counter()
         nulls, dets, tracks = result()
-        return gammas, image, nulls, dets, tracks, t_done
+        return gammas, image, nulls, dets, tracks, t_done, None
+
+    def _union_numerics(
+        self,
+        acq: Acquisition,
+        pw: PlaneWaveData,
+        fps: Mapping[str, Fingerprint],
+        band: tuple[float, float],
+        truths: Any,
+        want_image: bool,
+        track: bool,
+    ) -> tuple[dict[str, np.ndarray], np.ndarray | None, dict[str, NullModel], list, list | None, float, _Union]:
+        """`_numerics` with ``union`` (docs/design.md §4.14, eq. W2): each fingerprint mapped on the frame as
+        recorded and weighted by 1/v(t), each map with its own null model (`null_of`, its own frame's level) and
+        detections; `fpcore.locate.union_of` keeps the map whose most significant node is the more significant,
+        its detections at twice their PFA, and its null model carries the factor (the tracker's gates). The
+        confocal image is the frame's as recorded. Serial: the two maps' null models are not overlapped."""
+        imager, level, grid, cfg = self._imager, self._level, self.grid, self.cfg
+        assert imager is not None and self._weighted is not None
+        w_imager, w_level = self._weighted
+        w_pw = w_imager.plane_waves(acq)
+        image = imager.confocal(pw) if want_image or cfg.single_scattering_null else None
+        gammas: dict[str, np.ndarray] = {}
+        nulls: dict[str, NullModel] = {}
+        statistic: dict[str, str] = {}
+        dets: list[tuple[Detection, float | None]] = []
+        for name, fp in fps.items():
+            found = []
+            for im, lev, frame_pw, img in ((imager, level, pw, image), (w_imager, w_level, w_pw, None)):
+                g = im.gamma(frame_pw, fp)
+                nm = null_of(g, grid, acq, frame_pw, fp, band, lev, img)
+                dets_k = find_targets(g, grid, acq, band, name, cfg.n_peaks, cfg.interior, nm, None)
+                found.append(Located(g, nm, dets_k))
+            kept, k = union_of(found, cfg.max_pfa)
+            gammas[name], nulls[name], statistic[name] = kept.gamma, kept.null, UNION_STATISTICS[k]
+            dets += [(d, truth_error(np.asarray(d.position_m, float), truths, name)) for d in kept.detections]
+        t_done = time.perf_counter()
+        tracks = None
+        if track and not self._with_velocity():  # else `process` updates it with the velocity estimates
+            tracker = self._tracker
+            tracks = tracker.update(gammas, acq.timestamp, nulls=nulls) if tracker is not None and gammas else []
+        return gammas, image if want_image else None, nulls, dets, tracks, t_done, (statistic, w_pw)
+
+    def _with_velocity(self) -> bool:
+        """Whether a fingerprint has a velocity dictionary: the tracker then waits for its estimates."""
+        return any(e.spec.velocity_grid is not None and e.fp is not None for e in self._entries.values())
 
     def _second_stage(
         self,
@@ -486,7 +573,7 @@ class Pipeline:
                 return {}
             return {n: physical_level_of(grid, acq, pw, fp, band, level, apertures[n]) for n, fp in fps.items()}
 
-        with_velocity = any(e.spec.velocity_grid is not None and e.fp is not None for e in self._entries.values())
+        with_velocity = self._with_velocity()
 
         def finish(
             gammas: Mapping[str, np.ndarray], levels: Mapping[str, tuple[np.ndarray, np.ndarray]]

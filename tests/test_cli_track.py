@@ -121,3 +121,21 @@ def test_no_whitening_needs_a_calibration(sim, capsys) -> None:
     """A model has no modes to whiten: --no-whitening with --model is a clear error, not ignored."""
     assert main(["locate", str(sim / "frames.uff"), "--model", "point", "--no-whitening", "--frames", "0"]) == 2
     assert "--no-whitening: applies to a --calibration" in capsys.readouterr().err
+
+
+def test_track_with_the_union_names_each_frames_map(sim, tmp_path, capsys) -> None:
+    """`fp track --union` (docs/design.md §4.14, eq. W2): each frame's row names the map kept, and its detections'
+    PFA is twice that map's own: never below what the same map reports alone."""
+    out = {}
+    for flag in ("--union", "--time-weighting", None):
+        path = tmp_path / f"{flag}.json"
+        args = ["track", str(sim / "frames.uff"), "--calibration", str(sim / "calibration_cylinder2.uff")]
+        assert main([*args, "--json", str(path), *([flag] if flag else [])]) == 0
+        out[flag] = json.loads(path.read_text())["frames"]
+    assert "eq. W2: PFA × 2" in capsys.readouterr().out
+    for u, w, p in zip(out["--union"], out["--time-weighting"], out[None], strict=True):
+        assert u["statistic"] in ("as recorded", "weighted") and "statistic" not in p
+        alone = {"as recorded": p, "weighted": w}[u["statistic"]]
+        for d, a in zip(u["detections"], alone["detections"], strict=False):
+            assert d["pfa"] == pytest.approx(min(1.0, 2 * a["pfa"]), rel=1e-3)
+        assert u["detections"] and u["tracks"]

@@ -94,6 +94,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         single_scattering_null=args.null_single_scattering,
         cfar=args.cfar,
         time_weighting=args.time_weighting,
+        union=args.union,
     )
     specs = [replace(spec, whiten_modes=not args.no_whitening) for spec in sim.fingerprint_specs()]
     rows: list[tuple] = []
@@ -151,6 +152,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     options = ["F = R0′"] if args.no_whitening else []
     options += ["null level with eq. (B2)"] if args.null_single_scattering else []
     options += ["frames weighted by 1/v(t) (eq. W1)"] if args.time_weighting else []
+    options += ["the union of the frames as recorded and weighted by 1/v(t) (eq. W2: PFA × 2)"] if args.union else []
     options += [f"CFAR {args.cfar!r}"] if args.cfar != DEFAULT_CFAR else []
     if options:
         console.print(f"options: {', '.join(options)}")

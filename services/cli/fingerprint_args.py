@@ -97,6 +97,13 @@ def add_null_arguments(p: argparse.ArgumentParser | argparse._ArgumentGroup) -> 
     (§4.14), shared by fp locate, fp track, fp process/worker and fp demo."""
     add_time_weighting_argument(p)
     p.add_argument(
+        "--union",
+        action="store_true",
+        help="map each frame both as recorded and weighted by 1/v(t), and keep per fingerprint the more significant "
+        "map's detections, and its tracker gates, at twice their PFA (eq. W2, docs/design.md §4.14): the "
+        "weighting's gain in a fog that decays, without its cost on a target that rules its frame's energy",
+    )
+    p.add_argument(
         "--null-single-scattering",
         action="store_true",
         help="mix the single-scattering level into the null level (docs/design.md §4.9, eq. B2): for backgrounds "

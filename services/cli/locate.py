@@ -22,7 +22,7 @@ from services.cli.imaging import add_imaging_arguments, grid_ranges
 from services.cli.output import make_console, progress
 from services.imaging_setup import make_imager
 from services.models import build_fingerprint
-from services.pipeline import truth_error, truth_positions
+from services.pipeline import UNION_STATISTICS, truth_error, truth_positions
 from services.units import parse_band
 
 __all__ = ["add_locate_parser", "run_locate"]
@@ -52,13 +52,6 @@ def add_locate_parser(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="heuristic: skip maxima closer than the diffraction resolution to the grid's border "
         "(off by default: the local significance does not need it)",
-    )
-    p.add_argument(
-        "--union",
-        action="store_true",
-        help="map each frame both as recorded and weighted by 1/v(t), and keep the more significant map's "
-        "detections at twice their PFA (eq. W2, docs/design.md §4.14): the weighting's gain in a fog that decays, "
-        "without its cost on a target that rules its frame's energy",
     )
     p.set_defaults(func=run_locate)
 
@@ -156,7 +149,7 @@ def run_locate(args: argparse.Namespace) -> int:
             truths = truth_positions(acq.ground_truth)
             row = {"frame_index": acq.frame_index, "timestamp_s": acq.timestamp, "detections": []}
             if args.union:
-                row["statistic"] = "weighted" if chosen else "as recorded"
+                row["statistic"] = UNION_STATISTICS[chosen]
             for d in dets:
                 pos = np.array(d.position_m)
                 err = truth_error(pos, truths)  # the nearest target, whatever its name

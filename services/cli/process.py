@@ -182,6 +182,7 @@ def config_from_args(args: argparse.Namespace) -> ProcessorConfig:
         single_scattering_null=args.null_single_scattering,
         cfar=args.cfar,
         time_weighting=args.time_weighting,
+        union=args.union,
         map_encoding=args.map_encoding,
         track=not args.no_track,
         track_integrate=args.track_integrate,

@@ -97,6 +97,7 @@ def run_track(args: argparse.Namespace) -> int:
         single_scattering_null=args.null_single_scattering,
         cfar=args.cfar,
         time_weighting=args.time_weighting,
+        union=args.union,
         x_range=r["x_range"],
         y_range=r["y_range"],
         z_range=r["z_range"],
@@ -117,6 +118,8 @@ def run_track(args: argparse.Namespace) -> int:
         f"{len(frames)} frame(s), band {band[0] / 1e6:.2f}–{band[1] / 1e6:.2f} MHz, grid {grid.shape}, "
         f"detections at PFA < {args.max_pfa:g}"
     )
+    if args.union:
+        console.print("statistic: the union of the frames as recorded and weighted by 1/v(t) (eq. W2: PFA × 2)")
     table = Table(title=f"fp track {args.data}")
     for col in ("frame", "detection (mm)", "PFA", "track", "status", "track position (mm)", "track PFA", "error (mm)"):
         table.add_column(col, justify="right")
@@ -146,9 +149,10 @@ def run_track(args: argparse.Namespace) -> int:
                 for (d, err), v in zip(res.detections, res.velocities, strict=True)
             ]
             tracks = [_track_row(t, truths) for t in res.tracks]
-            rows.append(
-                {"frame_index": acq.frame_index, "timestamp_s": acq.timestamp, "detections": dets, "tracks": tracks}
-            )
+            row = {"frame_index": acq.frame_index, "timestamp_s": acq.timestamp, "detections": dets, "tracks": tracks}
+            if res.statistic:  # --union: the map kept (eq. W2), as `fp locate --union` writes it
+                row["statistic"] = res.statistic[spec.name]
+            rows.append(row)
             history.append(
                 {
                     "frame_index": acq.frame_index,
