@@ -64,7 +64,7 @@ def test_gamma_travels_as_uint16_within_half_a_step() -> None:
     assert msg.gamma.dtype == np.float32 and np.array_equal(msg.gamma, g)  # Python holds the float values
     payload = encode(msg)
     head = decode_header(payload)
-    assert head.schema_version == "1.1" and GammaMap.version() == (1, 1)
+    assert head.schema_version == "1.2" and GammaMap.version() == (1, 2)  # 1.2: the optional statistic (--union)
     assert {d.name: d.dtype for d in head.arrays}["gamma"] == "<u2" and head.fields["gamma_step"] == step
     back = decode(payload)
     assert isinstance(back, GammaMap) and back.gamma.dtype == np.float32 and not back.gamma.flags.writeable
