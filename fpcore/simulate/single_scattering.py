@@ -485,10 +485,16 @@ def pair_offsets(shape: tuple[int, int, int], separations: np.ndarray, rng: np.r
     per depth the joint distribution of (|m_y|, |m_x|) (n_y = 1: none along y): the share separations[z, m_y, m_x]
     of the cells has those offsets (each cell carries the same variance, so this is the share of the paths'
     energy). Each depth is cut along y into strips of height 2m_y (1 for m_y = 0), the share of the cells in strips
-    of m_y its marginal; each strip along x into tiles of width 2m_x drawn from the conditional distribution given
-    the strip's m_y, the tile's cell (x, y) paired with (x ± m_x, y ± m_y) across its halves: the partner lies in the
-    same strip, so the partner's partner is the cell, and a cell is its own partner only where m_x = m_y = 0. At the
-    grid's edges a tile too wide shrinks to the widest that fits (a strip then takes the x-marginal)."""
+    of m_y its marginal; each strip's row pair (rows y and y + m_y, which pair with each other) along x into tiles of
+    width 2m_x drawn from the conditional distribution given the strip's m_y, the tile's cell (x, y) paired with
+    (x ± m_x, y ± m_y) across its halves: the partner lies in the same row pair, so the partner's partner is the
+    cell, and a cell is its own partner only where m_x = m_y = 0. At the grid's edges a tile too wide shrinks to the
+    widest that fits (a strip then takes the x-marginal).
+
+    One tiling per row pair, not one per strip (until 2026-12-08): a tiling shared by the strip's 2m_y rows lays
+    pairs of one separation side by side over a patch of the grid, a structured reflectivity that no suspension has
+    (each bead ends many paths, at every separation) and that made the default detector's γ-maps heavier-tailed than
+    their level under the surface (docs/validation.md, tenth session). The shares of the separations are the same."""
     nx, ny, nz = shape
     sep = np.asarray(separations, dtype=np.float64)
     if sep.ndim != 3 or sep.shape[0] != nz:
@@ -524,7 +530,10 @@ def pair_offsets(shape: tuple[int, int, int], separations: np.ndarray, rng: np.r
             m_y = abs(int(oy[y0]))
             height = 2 * m_y if m_y else 1
             given = sep[z, m_y] / q_y[m_y] if m_y < q_y.size and q_y[m_y] > 0 else q_x  # the conditional on m_y
-            off[0, :, y0 : y0 + height, z] = tiling(nx, given)[:, None]
+            for j in range(max(m_y, 1)):  # rows y0 + j and y0 + m_y + j pair with each other: one tiling for both
+                tiles = tiling(nx, given)
+                for row in (y0 + j, y0 + m_y + j) if m_y else (y0,):
+                    off[0, :, row, z] = tiles
             off[1, :, y0 : y0 + height, z] = oy[None, y0 : y0 + height]
             y0 += height
     return off
