@@ -403,6 +403,7 @@ def null_model(
     greatest_of: bool = False,
     cut_guard: float = 0.0,
     censor_reference: str = "depth",
+    axial_greatest_of: bool = False,
 ) -> NullModel:
     """Estimate the local null model of a γ-map (module doc, steps 1–3).
 
@@ -422,8 +423,11 @@ def null_model(
     target with its own echo). censor_reference: what `censor` compares a node with before it is left out
     of training — "depth" (default), the robust per-depth median; "local", the window's uncensored mean
     around it (with the same guard); or "median", the window's median (`local_median`), which a target's own
-    lobes do not raise. censor = inf censors nothing. The "compact" setting censors only nodes 30× above the
-    window's median (a null node does so with probability ≈ e^{−30}): a target's main lobe and sidelobes and
+    lobes do not raise. censor = inf censors nothing. axial_greatest_of: the level is the greater of the
+    training window's and of each of its two axial sides' (the nodes above, the nodes below the cell under test,
+    each less the guard box; GO-CFAR along depth, step 1; off by default, docs/design.md §4.9), with the
+    training-cell count of the one chosen. The "compact" setting censors only nodes 30× above the window's
+    median (a null node does so with probability ≈ e^{−30}): a target's main lobe and sidelobes and
     other strong targets in the window, not the background's own bright grains, whose removal biased the
     level low on the focused speckle (§4.9).
     """
@@ -496,6 +500,11 @@ def null_model(
 
     train = (vis & ~guard(1.0)).astype(np.float64)
     power, count = local_sums(g2, train)  # count: the training nodes in the window (less the guard box)
+    if axial_greatest_of:
+        for side_power, side_count in axial_sides(g2, train, sizes, gsizes):
+            use = np.isfinite(side_power) & ~(side_power <= power)  # where the side is brighter (or the ring empty)
+            power = np.where(use, side_power, power)
+            count = np.where(use, side_count, count)
     if greatest_of:
         # GO-CFAR (Hansen & Sawyers 1980) across each lateral axis: the larger of the window's two
         # lateral halves, where a half holds at least a quarter of its nodes in training. At a level
@@ -542,6 +551,52 @@ def null_model(
         tail_fit,
         tuple(max(1, int(np.ceil(2.0 * c / s))) for c, s in zip(cells, grid.spacing, strict=True)),
     )
+
+
+def _one_sided(x: np.ndarray, axis: int, near: int, far: int, side: int) -> np.ndarray:
+    """Σ x over the offsets near … far (inclusive, ≥ 1) from each node along `axis`, on `side` (−1: lower
+    indices, +1: higher), zero beyond the array (cumulative sums)."""
+    n = x.shape[axis]
+    c = np.concatenate([np.zeros_like(np.take(x, [0], axis=axis)), np.cumsum(x, axis=axis)], axis=axis)
+    i = np.arange(n)
+    if side > 0:
+        hi, lo = np.minimum(i + far + 1, n), np.minimum(i + near, n)
+    else:
+        hi, lo = np.maximum(i - near + 1, 0), np.maximum(i - far, 0)
+    return np.take(c, hi, axis=axis) - np.take(c, lo, axis=axis)
+
+
+def axial_sides(
+    g2: np.ndarray, train: np.ndarray, sizes: list[int], gsizes: list[int] | None
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(mean of g2 over the training nodes, their count) in each axial side of the training window — the nodes
+    above and the nodes below the cell under test (offsets 1 … half the window along depth, the last axis, the
+    window's full lateral extent), each less the guard box `gsizes` (None: no guard); NaN where a side holds
+    fewer than a quarter of its nodes in training (at the grid's top and bottom, a side is mostly outside)."""
+    axis = g2.ndim - 1
+    lateral = [*sizes[:-1], 1]
+    nominal = float(np.prod(lateral))
+
+    def box(values: np.ndarray, shape: list[int]) -> np.ndarray:
+        return uniform_filter(values, shape, mode="constant") * float(np.prod(shape))
+
+    vw = g2 * train
+    num_l, den_l = box(vw, lateral), box(train, lateral)
+    half = sizes[-1] // 2
+    out = []
+    for side in (-1, 1):
+        num = _one_sided(num_l, axis, 1, half, side)
+        den = _one_sided(den_l, axis, 1, half, side)
+        expected = nominal * half
+        if gsizes is not None and gsizes[-1] // 2 >= 1:
+            g_lat = [*gsizes[:-1], 1]
+            g = min(gsizes[-1] // 2, half)
+            num = num - _one_sided(box(vw, g_lat), axis, 1, g, side)
+            den = den - _one_sided(box(train, g_lat), axis, 1, g, side)
+            expected -= float(np.prod(g_lat)) * g
+        ok = den > 0.25 * max(expected, 1.0)
+        out.append((np.where(ok, num / np.maximum(den, 1e-30), np.nan), den))
+    return out
 
 
 def depth_median(g2: np.ndarray, visible: np.ndarray) -> np.ndarray:

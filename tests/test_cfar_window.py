@@ -217,3 +217,36 @@ def test_depth_median_is_numpys_nanmedian_of_the_visible_nodes() -> None:
         with np.errstate(all="ignore"):
             ref = np.nanmedian(np.where(np.isnan(flat).all(axis=0, keepdims=True), 1.0, flat), axis=0)
         assert np.array_equal(depth_median(g2, vis), ref)
+
+
+def test_axial_sides_take_the_bright_side_of_a_depth_edge() -> None:
+    """`null_model(axial_greatest_of=True)`: at a level edge in depth (a layer 4× brighter from z index 20 on, as under
+    a scattering layer's surface) the nodes just above it take the level of the side below them, which the ring's mean
+    halves; on a stationary field the option changes the level by the side estimates' noise only; the sides' sums are
+    the brute-force ones."""
+    from fpcore.cfar import _one_sided, axial_sides
+
+    grid = Grid.regular((0, 47 * SPACING), (0, 39 * SPACING), SPACING)
+    rng = np.random.default_rng(11)
+    step = np.where(np.arange(grid.shape[1]) >= 20, 2.0, 1.0)[None, :]
+    above = (slice(None), slice(17, 20))  # within the window's reach above the edge
+    ring, sides, flat_ring, flat_sides = [], [], [], []
+    for _ in range(8):
+        g = np.abs(speckle(grid.shape, rng))
+        settings = CFAR_SETTINGS["compact"]
+        ring.append(null_model(g * step, grid, RES, **settings).statistic[above].mean())
+        sides.append(null_model(g * step, grid, RES, **settings, axial_greatest_of=True).statistic[above].mean())
+        flat_ring.append(null_model(g, grid, RES, **settings).statistic.mean())
+        flat_sides.append(null_model(g, grid, RES, **settings, axial_greatest_of=True).statistic.mean())
+    assert np.mean(sides) < 0.7 * np.mean(ring), (sides, ring)
+    assert 0.8 < np.mean(flat_sides) / np.mean(flat_ring) <= 1.0, (flat_sides, flat_ring)
+    x = rng.standard_normal((5, 12))
+    for side in (-1, 1):
+        ref = np.zeros_like(x)
+        for i in range(12):
+            for j in (2, 3):
+                if 0 <= i + side * j < 12:
+                    ref[:, i] += x[:, i + side * j]
+        assert np.allclose(_one_sided(x, 1, 2, 3, side), ref)
+    (lo, n_lo), (hi, n_hi) = axial_sides(np.ones((9, 12)), np.ones((9, 12)), [5, 5], None)
+    assert np.allclose(lo[:, 2:], 1.0) and np.isnan(lo[:, 0]).all() and np.allclose(n_hi[2:-2, :10], 10.0)
