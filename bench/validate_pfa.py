@@ -15,6 +15,7 @@ within 1 mm of the truth.
     python bench/validate_pfa.py --seed0 20000 --iid 300 --maps2d 1000 --maps3d 0 --power 0      # README, 2-D (20 min)
     python bench/validate_pfa.py --seed0 20000 --iid 0 --maps2d 0 --maps3d 300 --power 16        # README, 3-D (51 min)
     python bench/validate_pfa.py --seed0 20000 --iid 0 --maps2d 300 --maps3d 48 --power 0 --time-weighting
+    python bench/validate_pfa.py --seed0 20000 --iid 0 --maps2d 0 --maps3d 60 --power 0 --focal-return off  # cells too
                                                      # the frames weighted by 1/v(t) (docs/design.md §4.14)
 
 The fog maps are one per simulated medium by default (``--frames-per-seed 1``): frames of one medium
@@ -41,6 +42,14 @@ from fpcore.metrics import DEFAULT_MAX_PFA
 from fpcore.simulate import scenario
 
 ALPHAS = (0.5, 0.2, 0.1, 0.05, 0.01, 0.001)
+
+
+#: --focal-return: the scenario options of each way to draw the focal return (fpcore.simulate.scenarios)
+FOCAL_RETURNS: dict[str, dict[str, bool]] = {
+    "pairs": {},
+    "cells": {"focal_return": True, "focal_return_shallow": True},
+    "off": {"focal_return": False},
+}
 
 
 def iid_pfas(n: int, progress: Progress, seed: int = 2024) -> list[float]:
@@ -110,6 +119,7 @@ def scenario_maps(
                         "target": tname,
                         "pfa": det.pfa,
                         "error_m": err,
+                        "z_m": float(det.position_m[-1]),
                         "c_gamma": det.c_gamma,
                         "c_local": det.c_local,
                     }
@@ -206,6 +216,14 @@ def main() -> None:
         help="the CFAR setting of the null model (fpcore.cfar.CFAR_NAMES; docs/design.md §4.9)",
     )
     ap.add_argument(
+        "--focal-return",
+        choices=FOCAL_RETURNS,
+        default="pairs",
+        help="how the simulated media draw the focal return of the orders ≥ 2 (docs/design.md §6.6): 'pairs', the "
+        "scenarios' default (two-point paths, F6); 'cells', one reflectivity per cell of the beads' grid (F1–F3, "
+        "focal_return_shallow); 'off' (focal_return=False): where the default detector's excess comes from",
+    )
+    ap.add_argument(
         "--time-weighting",
         action="store_true",
         help="the simulated frames weighted by their own 1/v(t) before γ (eq. W1, docs/design.md §4.14; the i.i.d. "
@@ -214,7 +232,8 @@ def main() -> None:
     ap.add_argument("--png", default="out/bench/pfa_pp.png")
     args = ap.parse_args()
     t0 = time.perf_counter()
-    medium = {"single_scattering": args.single_scattering} if args.single_scattering else None
+    medium = {"single_scattering": args.single_scattering} if args.single_scattering else {}
+    medium.update(FOCAL_RETURNS[args.focal_return])
     opts = {
         "medium": medium,
         "single_scattering_null": args.null_single_scattering,
@@ -262,6 +281,11 @@ def main() -> None:
             lo, hi = interval(k, n)
             parts.append(f"α={a:g}: {k}/{n} {unit} = {k / n:.3f} [{lo:.3f}, {hi:.3f}]")
         print(f"  {label:20s} " + "; ".join(parts))
+    print("\nWhere the target-free maps below α = 0.05 have their most significant node (depth, mm; PFA):")
+    for label, rows in fog.items():
+        low = sorted((r["z_m"] * 1e3, r["pfa"]) for r in rows if r["pfa"] < 0.05)
+        if rows:
+            print(f"  {label:20s} " + (", ".join(f"{z:.2f} ({p:.1e})" for z, p in low) or "none"))
     print(f"\nDetection power on the default grid (whole record, no depth window), PFA < {DEFAULT_MAX_PFA:g}:")
     for name, rows in power.items():
         for tname in sorted({r["target"] for r in rows}):

@@ -11,6 +11,7 @@ against the truth over the mean confocal image (with zooms and the error per fra
     python bench/validate_tracking.py --roi                             # the scenario's ROI (z 20–31 mm)
     python bench/validate_tracking.py --depth-ls 2.5 --no-whitening --null-single-scattering   # F = R0′, eq. (B2)
     python bench/validate_tracking.py --depth-ls 4 --time-weighting   # each frame weighted by 1/v(t) (eq. W1)
+    python bench/validate_tracking.py --depth-ls 4 --union            # the more significant of both maps (eq. W2)
 
 The default grid is the product's: the record's whole time window, the suspension's surface (z_s = 16
 mm) included. γ rises under that surface, so the plain global argmax (printed beside) jumps there on
@@ -32,7 +33,7 @@ import numpy as np
 
 import fpcore
 from fpcore.cfar import CFAR_NAMES, DEFAULT_CFAR
-from fpcore.locate import null_of
+from fpcore.locate import null_of, union_of
 from fpcore.metrics import cramer_rao_precision, diffraction_resolution
 from fpcore.simulate import scenario
 from fpcore.tracking import Tracker, TrackerConfig
@@ -52,11 +53,14 @@ def run(
     whiten_modes: bool = True,
     null_single_scattering: bool = False,
     time_weighting: bool = False,
+    union: bool = False,
 ) -> dict[str, Any]:
     """Simulate, image, track over the scenario's region of interest (depths `z_range` if given);
     returns per-target rows and the mean confocal image. whiten_modes=False: fingerprints F = R0′ (paper S2,
     Fig. S7a); null_single_scattering: the null level with eq. (B2) (docs/design.md §4.9); time_weighting: each
-    frame weighted by its own 1/v(t) before γ (eq. W1, docs/design.md §4.14)."""
+    frame weighted by its own 1/v(t) before γ (eq. W1, docs/design.md §4.14); union: each frame mapped as recorded
+    and weighted, per target the more significant map kept, its PFAs (detections, the tracker's gates) doubled
+    (eq. W2, as the pipeline's --union)."""
     sc = scenario(name, quick=quick, seed=0, **overrides)
     n = sc.n_frames if n_frames is None else min(n_frames, sc.n_frames)
     if use_roi or z_range is not None:
@@ -67,6 +71,10 @@ def run(
     z_range = (float(grid.z[0]), float(grid.z[-1]))
     imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band, time_weighting=time_weighting))
     level = fpcore.NullLevel(imager, cfar=cfar, single_scattering=null_single_scattering)
+    pairs = [(imager, level)]
+    if union:  # eq. W2: a second imager on the same grid, each frame weighted by 1/v(t)
+        w_imager = fpcore.Imager(fpcore.ImagingConfig(grid, band=sc.band, time_weighting=True))
+        pairs.append((w_imager, fpcore.NullLevel(w_imager, cfar=cfar, single_scattering=null_single_scattering)))
     fps = sc.fingerprints(imager.out_sines_for(sc.frame(0)), whiten_modes=whiten_modes)
     lam = sc.c0 / sc.probe.centre_frequency
     bw = sc.band[1] - sc.band[0]
@@ -84,6 +92,7 @@ def run(
         f"fingerprints {'whitened' if whiten_modes else 'R0′ (not whitened)'}, "
         f"null level {'max(a P·A, b Q) (eq. B2)' if null_single_scattering else 'P·A'}"
         + (", frames weighted by 1/v(t) (eq. W1)" if time_weighting else "")
+        + (", the union of the frames as recorded and weighted (eq. W2: PFA × 2)" if union else "")
     )
     print(
         f"{'frame':>5} {'target':>10} {'track err (mm)':>15} {'argmax err (mm)':>16} {'CR radius (mm)':>15} "
@@ -93,8 +102,16 @@ def run(
         acq = sc.frame(i)
         pw = imager.plane_waves(acq)
         conf_sum += imager.confocal(pw)
-        maps = {t: imager.gamma(pw, fp) for t, fp in fps.items()}
-        nulls = {t: null_of(maps[t], grid, acq, pw, fp, sc.band, level) for t, fp in fps.items()}
+        if union:
+            kept = {
+                t: union_of([fpcore.locate(im, acq, fp, lev, max_pfa=None) for im, lev in pairs], None)[0]
+                for t, fp in fps.items()
+            }
+            maps = {t: k.gamma for t, k in kept.items()}
+            nulls = {t: k.null for t, k in kept.items()}  # NullModel.n_maps = 2: every PFA read from it doubled
+        else:
+            maps = {t: imager.gamma(pw, fp) for t, fp in fps.items()}
+            nulls = {t: null_of(maps[t], grid, acq, pw, fp, sc.band, level) for t, fp in fps.items()}
         states = {s.fingerprint: s for s in tracker.update(maps, acq.timestamp, nulls=nulls)}
         for tg in acq.ground_truth.targets or []:
             t, r = tg.name, tg.position
@@ -281,9 +298,20 @@ def main() -> None:
         action="store_true",
         help="each frame weighted by its own 1/v(t) before γ (eq. W1, docs/design.md §4.14)",
     )
+    ap.add_argument(
+        "--union",
+        action="store_true",
+        help="each frame mapped as recorded and weighted; per target the more significant map, its PFAs doubled "
+        "(eq. W2, docs/design.md §4.14; the pipeline's --union)",
+    )
     ap.add_argument("--png", default=None, help="figure path (default out/tracking-<scenario>.png)")
     ap.add_argument("--json", default=None, help="per-frame rows and the summary as JSON")
     args = ap.parse_args()
+    if args.union and (args.time_weighting or args.integrate > 1):
+        ap.error(
+            "--union: maps each frame as recorded and weighted, one frame at a time; drop --time-weighting and "
+            "--integrate"
+        )
     overrides: dict[str, Any] = {}
     if args.sink is not None:
         overrides["sink"] = args.sink
@@ -308,6 +336,7 @@ def main() -> None:
         whiten_modes=not args.no_whitening,
         null_single_scattering=args.null_single_scattering,
         time_weighting=args.time_weighting,
+        union=args.union,
     )
     summary = summarise(res)
     png = args.png or f"out/tracking-{args.scenario}.png"
