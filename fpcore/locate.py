@@ -169,7 +169,9 @@ def union_of(found: Sequence[Located], max_pfa: float | None = DEFAULT_MAX_PFA) 
     (`NullModel.n_maps`), so that a PFA read from it later (a tracker's gate) is the union's too."""
     if not found:
         raise ValueError("found: expected one or more Located maps")
-    best = min(range(len(found)), key=lambda k: found[k].detections[0].pfa if found[k].detections else 1.0)
+    # the most significant node: the smallest PFA among a map's detections (above SURE_SIGNIFICANCE they are ordered
+    # by γ, fpcore.cfar.NullModel.ranking, so with n_peaks > 1 the first need not be it)
+    best = min(range(len(found)), key=lambda k: min((d.pfa for d in found[k].detections), default=1.0))
     dets = [replace(d, pfa=union_pfa(d.pfa, len(found))) for d in found[best].detections]
     if max_pfa is not None:
         dets = [d for d in dets if d.pfa < max_pfa]

@@ -245,7 +245,15 @@ class Pipeline:
             self._weighted = None
             if cfg.union:  # eq. W2: a second imager on the same grid and output directions, frames weighted by 1/v(t)
                 weighted = make_imager(
-                    acq, band, grid, n_freq=cfg.n_freq, n_out=cfg.n_out, eps=cfg.eps, time_weighting=True
+                    acq,
+                    band,
+                    grid,
+                    n_freq=cfg.n_freq,
+                    n_out=cfg.n_out,
+                    eps=cfg.eps,
+                    n_fingerprints=len(self._entries),
+                    memory_budget=cfg.memory_budget,
+                    time_weighting=True,
                 )
                 self._weighted = (weighted, level_of(weighted))
             self._band = band
@@ -332,8 +340,8 @@ class Pipeline:
             except BaseException:
                 self._restore(saved)
                 raise
-            if prev is not None and prev.fp is not None and self._imager is not None:
-                self._imager.forget(prev.fp)
+            if prev is not None and prev.fp is not None:
+                self._forget(prev.fp)
             return entry.describe()
 
     def remove(self, name: str) -> None:
@@ -342,8 +350,14 @@ class Pipeline:
             if entry is None:
                 raise KeyError(name)
             self._entries = {n: e for n, e in self._entries.items() if n != name}
-            if entry.fp is not None and self._imager is not None:
-                self._imager.forget(entry.fp)
+            if entry.fp is not None:
+                self._forget(entry.fp)
+
+    def _forget(self, fp: Fingerprint) -> None:
+        """Drop `fp`'s cached templates from every imager (the weighted one too, with ``union``)."""
+        for imager in (self._imager, *(self._weighted[:1] if self._weighted is not None else ())):
+            if imager is not None:
+                imager.forget(fp)
 
     #: What a set-up replaces (rebinds, never mutates in place): saved and restored by the transactions.
     _STATE = ("cfg", "_entries", "_imager", "_level", "_weighted", "_tracker", "_geom", "_band", "_ref", "setup_s")
@@ -427,7 +441,10 @@ class Pipeline:
                 acq, pw, fps, band, truth_positions(acq.ground_truth), want_image
             )
             tv = time.perf_counter()
-            velocities, motion, notices = self._velocities(acq, pw, grid, dets)
+            # the velocity search on the frame each fingerprint's kept map was made from (with union: its null model
+            # gates the motion measurements, fpcore.tracking)
+            frames = {n: union[1] for n, st in union[0].items() if st == "weighted"} if union is not None else {}
+            velocities, motion, notices = self._velocities(acq, pw, grid, dets, frames)
             if self._level is not None and gammas and not NullPower.uniform(pw.freqs) and "bins" not in self._noticed:
                 self._noticed.add("bins")  # a set-up warning in the node's log, once; not a frame error
                 log.warning(
@@ -608,12 +625,18 @@ class Pipeline:
             log.warning("%s", text)
 
     def _velocities(
-        self, acq: Acquisition, pw: PlaneWaveData, grid: Grid, dets: list[tuple[Detection, float | None]]
+        self,
+        acq: Acquisition,
+        pw: PlaneWaveData,
+        grid: Grid,
+        dets: list[tuple[Detection, float | None]],
+        frames: Mapping[str, PlaneWaveData] | None = None,
     ) -> tuple[list[VelocityEstimate | None], dict[str, list[VelocityEstimate]], list[str]]:
         """The velocity dictionaries (fpcore.velocity) of the fingerprints that have one, searched around each
         of their detections and each of their tracks' predicted positions (a region already searched, within
-        half its half-width, is not searched again). Without a PRF the transmit times are unknown: said once
-        (a notice), and no velocity is estimated."""
+        half its half-width, is not searched again), on the frame `pw`, or on `frames[name]` where given (with
+        ``union``: the weighted frame, where the fingerprint's kept map is the weighted one). Without a PRF the
+        transmit times are unknown: said once (a notice), and no velocity is estimated."""
         notices: list[str] = []
         per_det: list[VelocityEstimate | None] = [None] * len(dets)
         motion: dict[str, list[VelocityEstimate]] = {}
@@ -644,7 +667,7 @@ class Pipeline:
             for i, origin in origins:
                 est = next((e for e in found if np.linalg.norm(e.origin_m - origin) <= vg.roi_half_width / 2), None)
                 if est is None:
-                    est = search.estimate(pw, origin, grid.spacing)
+                    est = search.estimate((frames or {}).get(name, pw), origin, grid.spacing)
                     found.append(est)
                 if i is not None:
                     per_det[i] = est

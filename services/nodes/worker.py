@@ -173,7 +173,8 @@ def encode_shard(res: ShardResult) -> bytes:
             elif isinstance(v, tuple):
                 fields[f.name] = {"tuple": [float(x) if isinstance(x, (float, np.floating)) else int(x) for x in v]}
             else:
-                fields[f.name] = {"value": None if v is None else float(v)}
+                keep = isinstance(v, (int, np.integer)) and not isinstance(v, bool)  # an int stays one (n_maps)
+                fields[f.name] = {"value": None if v is None else int(v) if keep else float(v)}
         nulls[name] = fields
     msgs = [[topic, buf(f"msg.{i}", np.frombuffer(p, np.uint8))] for i, (topic, p) in enumerate(res.messages)]
     arrays, offset = [], 0
