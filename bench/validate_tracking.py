@@ -103,10 +103,14 @@ def run(
         pw = imager.plane_waves(acq)
         conf_sum += imager.confocal(pw)
         if union:
-            kept = {
-                t: union_of([fpcore.locate(im, acq, fp, lev, max_pfa=None) for im, lev in pairs], None)[0]
-                for t, fp in fps.items()
-            }
+            frames = [pw, pairs[1][0].plane_waves(acq)]  # each frame's plane waves once, for every target
+            kept = {}
+            for t, fp in fps.items():
+                found = [
+                    fpcore.locate(im, acq, fp, lev, pw=p, max_pfa=None)
+                    for (im, lev), p in zip(pairs, frames, strict=True)
+                ]
+                kept[t] = union_of(found, None)[0]
             maps = {t: k.gamma for t, k in kept.items()}
             nulls = {t: k.null for t, k in kept.items()}  # NullModel.n_maps = 2: every PFA read from it doubled
         else:

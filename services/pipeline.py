@@ -262,6 +262,10 @@ class Pipeline:
             self._tracker = make_tracker(grid, tracker_settings(acq, band, cfg)) if cfg.track else None
             pw = imager.plane_waves(acq)
             imager.kernel(pw)  # NUFFT plan (FFTW planning: seconds) before the first frame is timed
+            w_pw = None
+            if self._weighted is not None:  # the weighted frame's plane waves and plan, once (union)
+                w_pw = self._weighted[0].plane_waves(acq)
+                self._weighted[0].kernel(w_pw)
             for entry in self._entries.values():
                 self._build(entry, acq, pw)
                 if entry.fp is not None:
@@ -269,9 +273,8 @@ class Pipeline:
                         imager.template(pw, entry.fp)
                         # aperture factor (cached) and the null level's NUFFT plan, before the first frame is timed
                         self._level.level(acq, pw, entry.fp, resolution_of(grid, acq, band))
-                        if self._weighted is not None:  # the same for the weighted maps (union)
+                        if self._weighted is not None and w_pw is not None:  # the same for the weighted maps
                             w_imager, w_level = self._weighted
-                            w_pw = w_imager.plane_waves(acq)
                             w_imager.template(w_pw, entry.fp)
                             w_level.level(acq, w_pw, entry.fp, resolution_of(grid, acq, band))
                         if self.cfg.single_scattering_null:
